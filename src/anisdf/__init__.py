@@ -1,0 +1,3 @@
+"""AniSDF: fused-granularity neural surfaces with anisotropic spherical Gaussian encoding."""
+
+__version__ = "0.1.0"

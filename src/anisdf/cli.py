@@ -1,0 +1,188 @@
+"""Command line: ``anisdf <command> ...``.
+
+User errors end with exit code 2 and one line (``--debug`` shows the traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from anisdf import __version__
+from anisdf.errors import AnisdfError
+
+log = logging.getLogger("anisdf")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    from anisdf.config import preset_names
+
+    p.add_argument("--preset", default=None, help=f"preset name ({', '.join(preset_names())}) or a YAML file")
+    p.add_argument("overrides", nargs="*", metavar="key=value",
+                   help="config overrides, e.g. geometry.kind=single appearance.kind=pe renderer.grid_resolution=64")
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from anisdf.data.inspect import inspect_dataset
+
+    print(json.dumps(inspect_dataset(Path(args.data)), indent=2))
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from anisdf.systems.commands import train
+
+    summary = train(Path(args.data), Path(args.out), preset=args.preset, overrides=args.overrides,
+                    max_steps=args.max_steps, max_minutes=args.max_minutes, device=args.device,
+                    resume=args.resume, progress=not args.no_progress)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def cmd_extract_mesh(args: argparse.Namespace) -> int:
+    from anisdf.systems.commands import extract_mesh
+
+    path = extract_mesh(Path(args.run), resolution=args.resolution, fmt=args.format, device=args.device,
+                        keep_floaters=args.keep_floaters)
+    print(path)
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from anisdf.systems.commands import render
+
+    out = render(Path(args.run), split=args.split, video=args.video, max_views=args.max_views,
+                 downscale=args.downscale, device=args.device)
+    print(out)
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from anisdf.systems.commands import evaluate
+
+    metrics = evaluate(Path(args.run), split=args.split, max_views=args.max_views,
+                       gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None, device=args.device,
+                       chamfer_points=args.chamfer_points, mesh_resolution=args.mesh_resolution)
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+def cmd_chamfer(args: argparse.Namespace) -> int:
+    from anisdf.eval.metrics import chamfer_main
+
+    value = chamfer_main(args.a, args.b, n_points=args.points, seed=args.seed)
+    print(f"{value:.6f}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from anisdf.systems.demo import run_demo
+
+    run_demo(Path(args.out), minutes=args.minutes, device=args.device)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from anisdf.systems.bench import run_bench
+
+    run_bench(as_json=args.json, quick=args.quick, data=Path(args.data) if args.data else None,
+              minutes=args.minutes)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
+    p.add_argument("--version", action="version", version=f"anisdf {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    s = sub.add_parser("inspect", help="validate a dataset and print a JSON summary")
+    s.add_argument("data", help="dataset folder (format detected automatically)")
+    s.set_defaults(fn=cmd_inspect)
+
+    s = sub.add_parser("train", help="reconstruct a scene")
+    s.add_argument("data", help="dataset folder")
+    s.add_argument("--out", required=True, help="run folder (checkpoints, logs, renders)")
+    s.add_argument("--max-steps", type=int, default=None)
+    s.add_argument("--max-minutes", type=float, default=None, help="stop cleanly and save after this long")
+    s.add_argument("--device", default=None, help="auto | cpu | cuda[:N]")
+    s.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/last.pt")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_config_args(s)
+    s.set_defaults(fn=cmd_train)
+
+    s = sub.add_parser("extract-mesh", help="marching cubes on the SDF -> RUN/mesh.<ext>")
+    s.add_argument("run")
+    s.add_argument("--resolution", type=int, default=512)
+    s.add_argument("--format", choices=["ply", "obj", "glb"], default="ply")
+    s.add_argument("--keep-floaters", action="store_true", help="keep small disconnected pieces")
+    s.add_argument("--device", default=None)
+    s.set_defaults(fn=cmd_extract_mesh)
+
+    s = sub.add_parser("render", help="render views and maps (normal, depth, c_view, c_ref, w, opacity)")
+    s.add_argument("run")
+    s.add_argument("--split", default="test")
+    s.add_argument("--video", action="store_true", help="also write an orbit video (MP4)")
+    s.add_argument("--max-views", type=int, default=0)
+    s.add_argument("--downscale", type=int, default=1)
+    s.add_argument("--device", default=None)
+    s.set_defaults(fn=cmd_render)
+
+    s = sub.add_parser("eval", help="PSNR, SSIM, normal MAE and Chamfer -> RUN/eval.json + report")
+    s.add_argument("run")
+    s.add_argument("--split", default="test")
+    s.add_argument("--max-views", type=int, default=0)
+    s.add_argument("--gt-mesh", default=None, help="reference mesh for the Chamfer distance")
+    s.add_argument("--chamfer-points", type=int, default=1_000_000)
+    s.add_argument("--mesh-resolution", type=int, default=512)
+    s.add_argument("--device", default=None)
+    s.set_defaults(fn=cmd_eval)
+
+    s = sub.add_parser("chamfer", help="Chamfer distance between two meshes (last line)")
+    s.add_argument("a")
+    s.add_argument("b")
+    s.add_argument("--points", type=int, default=1_000_000)
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(fn=cmd_chamfer)
+
+    s = sub.add_parser("demo", help="reconstruct the bundled scene on the CPU in a few minutes")
+    s.add_argument("--out", default="runs/demo")
+    s.add_argument("--minutes", type=float, default=4.0)
+    s.add_argument("--device", default=None)
+    s.set_defaults(fn=cmd_demo)
+
+    s = sub.add_parser("bench", help="speed benchmark (encoding, training step, time to quality)")
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    s.add_argument("--quick", action="store_true", help="skip the time-to-PSNR run")
+    s.add_argument("--data", default=None, help="scene for time-to-PSNR (default ../shared/data/bunny_plastic)")
+    s.add_argument("--minutes", type=float, default=10.0)
+    s.set_defaults(fn=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # key=value overrides may come after options (argparse stops the positional list at them)
+        bad = [e for e in extra if e.startswith("-") or "=" not in e]
+        if bad or not hasattr(args, "overrides"):
+            parser.error(f"unrecognized arguments: {' '.join(bad or extra)}")
+        args.overrides = list(args.overrides or []) + extra
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO, format="%(message)s")
+    try:
+        return int(args.fn(args) or 0)
+    except AnisdfError as e:
+        if args.debug:
+            raise
+        print(f"anisdf: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("anisdf: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

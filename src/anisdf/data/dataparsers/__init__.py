@@ -1,0 +1,69 @@
+"""Dataset parsers and format auto-detection.
+
+``load_scene(path)`` detects the format from the files in the folder, parses the cameras, decodes the
+images and returns a normalised :class:`~anisdf.data.scene.Scene`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from anisdf.data.dataparsers import blender, colmap, instant_ngp, llff, neus
+from anisdf.data.dataparsers._common import ParsedScene
+from anisdf.data.loader import build_scene
+from anisdf.data.scene import Scene
+from anisdf.errors import DataError
+
+PARSERS: dict[str, Callable[[Path], ParsedScene]] = {
+    "nerf-synthetic": blender.parse,
+    "neus": neus.parse,
+    "instant-ngp": instant_ngp.parse,
+    "llff": llff.parse,
+    "colmap": colmap.parse,
+}
+
+LOOKED_FOR = (
+    "transforms_train.json (NeRF-synthetic), cameras_sphere.npz or cameras.npz (NeuS/DTU), "
+    "transforms.json (instant-ngp/nerfstudio), poses_bounds.npy (LLFF), "
+    "sparse/0/ or sparse/ with cameras+images .bin/.txt (COLMAP)"
+)
+
+
+def detect_format(path: str | Path) -> str:
+    """The dataset format of folder ``path``: one of :data:`anisdf.data.scene.FORMATS`."""
+    root = Path(path)
+    if not root.exists():
+        raise DataError(root, "dataset folder does not exist")
+    if not root.is_dir():
+        raise DataError(root, "expected a dataset folder, got a file")
+    if (root / "transforms_train.json").is_file():
+        return "nerf-synthetic"
+    if neus.find_npz(root) is not None:
+        return "neus"
+    if (root / "transforms.json").is_file():
+        return "instant-ngp"
+    if (root / "poses_bounds.npy").is_file():
+        return "llff"
+    if colmap.find_model(root) is not None:
+        return "colmap"
+    empty = not any(root.iterdir())
+    raise DataError(root, f"{'empty folder' if empty else 'unknown dataset format'}; looked for {LOOKED_FOR}")
+
+
+def parse_dataset(path: str | Path) -> ParsedScene:
+    """Cameras, splits and file lists of a dataset, without decoding images."""
+    root = Path(path)
+    return PARSERS[detect_format(root)](root)
+
+
+def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0) -> Scene:
+    """Load the dataset in folder ``path`` (format auto-detected) as a normalised :class:`Scene`.
+
+    ``downscale`` divides the image size (antialiased resize; intrinsics scaled to match);
+    ``max_images`` > 0 keeps at most that many training images, evenly spread over the train split.
+    """
+    return build_scene(parse_dataset(path), downscale=downscale, max_images=max_images)
+
+
+__all__ = ["PARSERS", "ParsedScene", "detect_format", "load_scene", "parse_dataset"]

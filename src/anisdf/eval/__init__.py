@@ -1,0 +1,1 @@
+"""Evaluation metrics (PSNR, SSIM, Chamfer distance, normal MAE) and report writing."""

@@ -1,0 +1,68 @@
+"""Blended radiance fields (paper Sec. 3.3, Eqs. 9-11).
+
+``c_view = Psi_v(F, n, SH(d))``; ``c_ref = Psi_r(ASG(omega_r), omega_r, n.v)`` with
+``omega_r = d - 2 (d.n) n`` (Eq. 6) and ASG parameters ``lambda, mu, xi = f_par(F, n)`` (Eq. 8);
+``w = sigmoid(Psi_w(F, n))`` and ``C = w c_view + (1 - w) c_ref`` (Eq. 11).
+Ablations: ``appearance.kind=pe`` replaces the ASG features by a positional encoding of omega_r;
+``appearance.kind=view`` keeps the view branch only.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from anisdf.config import AppearanceConfig
+from anisdf.fields.asg import asg_encode, asg_frames
+from anisdf.fields.encodings import positional_encoding, sh_encoding
+
+
+def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    d = in_dim
+    for _ in range(n_hidden):
+        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    layers.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*layers)
+
+
+class RadianceField(nn.Module):
+    def __init__(self, cfg: AppearanceConfig, feature_dim: int) -> None:
+        super().__init__()
+        self.cfg = cfg
+        geo_in = feature_dim + 3
+        self.view_mlp = mlp(geo_in + cfg.sh_degree**2, cfg.view_hidden, cfg.view_layers, 3)
+        if cfg.kind == "view":
+            return
+        self.weight_mlp = mlp(geo_in, cfg.weight_hidden, cfg.weight_layers, 1)
+        if cfg.kind == "blend":
+            self.register_buffer("frames", asg_frames(cfg.asg_theta, cfg.asg_phi), persistent=False)
+            self.n_lobes = cfg.asg_theta * cfg.asg_phi
+            self.par_mlp = mlp(geo_in, cfg.par_hidden, 2, self.n_lobes * 4)
+            ref_in = self.n_lobes * 2 + 3 + 1
+        else:
+            ref_in = 3 * (1 + 2 * cfg.pe_frequencies) + 1 + geo_in
+        self.ref_mlp = mlp(ref_in, cfg.ref_hidden, cfg.ref_layers, 3)
+
+    def forward(self, feat: Tensor, normal: Tensor, dirs: Tensor) -> dict[str, Tensor]:
+        """Colour of points with geometry feature ``feat``, unit ``normal`` seen along unit ``dirs``."""
+        geo = torch.cat([feat, normal], dim=-1)
+        c_view = torch.sigmoid(self.view_mlp(torch.cat([geo, sh_encoding(dirs, self.cfg.sh_degree)], dim=-1)))
+        if self.cfg.kind == "view":
+            return {"rgb": c_view, "c_view": c_view}
+        w = torch.sigmoid(self.weight_mlp(geo))
+        d_dot_n = (dirs * normal).sum(-1, keepdim=True)
+        refl = dirs - 2.0 * d_dot_n * normal
+        n_dot_v = -d_dot_n
+        if self.cfg.kind == "blend":
+            par = self.par_mlp(geo).view(-1, self.n_lobes, 4)
+            lam, mu = F.softplus(par[..., 0]), F.softplus(par[..., 1])
+            f_asg = asg_encode(refl, self.frames, lam, mu, par[..., 2:])
+            ref_in = torch.cat([f_asg, refl, n_dot_v], dim=-1)
+        else:
+            ref_in = torch.cat([positional_encoding(refl, self.cfg.pe_frequencies), n_dot_v, geo], dim=-1)
+        c_ref = torch.sigmoid(self.ref_mlp(ref_in))
+        rgb = w * c_view + (1.0 - w) * c_ref
+        return {"rgb": rgb, "c_view": c_view, "c_ref": c_ref, "weight": w[:, 0]}

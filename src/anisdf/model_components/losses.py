@@ -1,0 +1,53 @@
+"""The five training losses of AniSDF (paper Sec. 3.4, Eqs. 12-16)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def rgb_loss(pred: Tensor, gt: Tensor, kind: str = "mse+l1") -> Tensor:
+    """Eq. 12 (``mse``); the release adds an L1 term for object scenes and uses L1 alone on DTU."""
+    loss = pred.new_zeros(())
+    if "mse" in kind:
+        loss = loss + F.mse_loss(pred, gt)
+    if "l1" in kind:
+        loss = loss + F.l1_loss(pred, gt)
+    return loss
+
+
+def eikonal_loss(grad: Tensor) -> Tensor:
+    """Eq. 13: ``E[(||grad f(x)|| - 1)^2]``."""
+    return ((grad.norm(dim=-1) - 1.0) ** 2).mean()
+
+
+def curvature_loss(normal: Tensor, normal_eps: Tensor) -> Tensor:
+    """Eq. 14 (PermutoSDF): ``(n . n_eps - 1)^2`` between unit normals at ``x`` and at a tangent step from it."""
+    return (((normal * normal_eps).sum(-1) - 1.0) ** 2).mean()
+
+
+def orientation_loss(weights: Tensor, normal: Tensor, dirs: Tensor, ray_idx: Tensor, n_rays: int) -> Tensor:
+    """Eq. 15 (Ref-NeRF): ``sum_i w_i max(0, n . d)^2`` per ray, averaged over rays."""
+    per_sample = weights * torch.relu((normal * dirs).sum(-1)) ** 2
+    per_ray = torch.zeros(n_rays, device=weights.device, dtype=weights.dtype).index_add_(0, ray_idx, per_sample)
+    return per_ray.mean()
+
+
+def alpha_entropy_loss(opacity: Tensor, eps: float = 1e-4) -> Tensor:
+    """Eq. 16: ``BCE(alpha, alpha)``, the binary entropy of accumulated opacity, pushing it to 0 or 1."""
+    a = opacity.clamp(eps, 1.0 - eps)
+    return -(a * torch.log(a) + (1.0 - a) * torch.log(1.0 - a)).mean()
+
+
+def mask_loss(opacity: Tensor, mask: Tensor, eps: float = 1e-3) -> Tensor:
+    """BCE between accumulated opacity and an object mask (NeuS 'w/ mask' setting, DTU)."""
+    return F.binary_cross_entropy(opacity.clamp(eps, 1.0 - eps), mask)
+
+
+def tangent_perturbation(x: Tensor, normal: Tensor, eps: float, generator: torch.Generator | None) -> Tensor:
+    """Points ``x + eps * t`` with ``t`` a random unit tangent to the (detached) normal."""
+    r = torch.randn(x.shape, generator=generator, device="cpu").to(x.device, x.dtype)
+    n = normal.detach()
+    t = F.normalize(torch.linalg.cross(n, r), dim=-1)
+    return x + eps * t

@@ -1,0 +1,80 @@
+"""Uniform ray marching inside the bounding sphere, keeping samples in occupied cells (packed layout).
+
+Samples of all rays are stored back to back, ordered by ray then by distance: ``ray_idx`` [S], ``t`` (midpoint)
+[S] and ``dt`` [S]. nerfacc offers this on CUDA only; this version runs wherever torch does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from anisdf.model_components.occupancy_grid import OccupancyGrid
+
+
+@dataclass
+class Samples:
+    ray_idx: Tensor
+    t: Tensor
+    dt: Tensor
+    n_rays: int
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    def select(self, keep: Tensor) -> Samples:
+        return Samples(self.ray_idx[keep], self.t[keep], self.dt[keep], self.n_rays)
+
+    def positions(self, origins: Tensor, dirs: Tensor) -> Tensor:
+        return origins[self.ray_idx] + dirs[self.ray_idx] * self.t[:, None]
+
+
+def sphere_intersect(origins: Tensor, dirs: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Entry and exit distances of rays with the sphere of ``radius`` at the origin (far <= near: miss)."""
+    b = (origins * dirs).sum(-1)
+    c = (origins * origins).sum(-1) - radius * radius
+    disc = b * b - c
+    sq = disc.clamp_min(0).sqrt()
+    near = (-b - sq).clamp_min(0.0)
+    far = torch.where(disc > 0, -b + sq, torch.zeros_like(b))
+    return near, far
+
+
+@torch.no_grad()
+def march(origins: Tensor, dirs: Tensor, grid: OccupancyGrid | None, radius: float, step: float,
+          max_samples: int, generator: torch.Generator | None = None, chunk_rays: int = 4096) -> Samples:
+    """Stratified samples every ``step`` along each ray within the sphere, kept where the grid is occupied.
+
+    With a ``generator`` the first sample of each ray is jittered inside its step (training); otherwise
+    samples sit at the step midpoints (evaluation, deterministic).
+    """
+    dev = origins.device
+    near, far = sphere_intersect(origins, dirs, radius)
+    out_r, out_t = [], []
+    for s in range(0, origins.shape[0], chunk_rays):
+        o, d = origins[s : s + chunk_rays], dirs[s : s + chunk_rays]
+        n0, f0 = near[s : s + chunk_rays], far[s : s + chunk_rays]
+        n_steps = int(((f0 - n0).max().clamp_min(0) / step).ceil().item()) if o.shape[0] else 0
+        n_steps = min(n_steps, max_samples)
+        if n_steps == 0:
+            continue
+        if generator is not None:
+            u = torch.rand(o.shape[0], 1, generator=generator, device="cpu").to(dev)
+        else:
+            u = torch.full((o.shape[0], 1), 0.5, device=dev)
+        t = n0[:, None] + (torch.arange(n_steps, device=dev)[None] + u) * step  # [R, K]
+        keep = t < f0[:, None]
+        if grid is not None:
+            pts = o[:, None] + d[:, None] * t[..., None]
+            keep &= grid.query(pts)
+        r_idx, k_idx = keep.nonzero(as_tuple=True)
+        out_r.append(r_idx + s)
+        out_t.append(t[r_idx, k_idx])
+    if not out_r:
+        empty = torch.zeros(0, device=dev)
+        return Samples(torch.zeros(0, dtype=torch.long, device=dev), empty, empty, origins.shape[0])
+    t = torch.cat(out_t)
+    return Samples(torch.cat(out_r), t, torch.full_like(t, step), origins.shape[0])

@@ -1,0 +1,184 @@
+"""AniSDF: wiring of the fused-granularity SDF, the blended radiance field and NeuS rendering, and the loss dict."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from anisdf.config import Config
+from anisdf.fields.encodings import sh_encoding
+from anisdf.fields.radiance_field import RadianceField, mlp
+from anisdf.fields.sdf_field import SDFField
+from anisdf.model_components import losses as L
+from anisdf.model_components.neus_renderer import (
+    Variance,
+    composite,
+    neus_alpha,
+    packed_weights,
+    prune_occluded,
+)
+from anisdf.model_components.occupancy_grid import OccupancyGrid
+from anisdf.model_components.ray_marching import march
+
+
+class EnvironmentBackground(nn.Module):
+    """Colour seen along rays that leave the bounding sphere, as a function of direction only.
+
+    Used for opaque photos without masks, where the background is part of the image.
+    """
+
+    def __init__(self, hidden: int = 64) -> None:
+        super().__init__()
+        self.net = mlp(16, hidden, 1, 3)
+
+    def forward(self, dirs: Tensor) -> Tensor:
+        return torch.sigmoid(self.net(sh_encoding(dirs, 4)))
+
+
+class AniSDFModel(nn.Module):
+    def __init__(self, cfg: Config, learn_background: bool = False) -> None:
+        super().__init__()
+        self.cfg = cfg
+        r = cfg.renderer
+        self.radius = r.radius
+        self.geometry = SDFField(cfg.geometry, radius=r.radius)
+        self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim)
+        self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
+        self.grid = OccupancyGrid(r.grid_resolution, r.radius)
+        self.background = EnvironmentBackground() if learn_background else None
+        self.register_buffer("step", torch.zeros((), dtype=torch.long))
+
+    # ----------------------------------------------------------------------------------------- schedule
+    def set_step(self, step: int) -> None:
+        self.step.fill_(step)
+        self.geometry.set_step(step)
+
+    @property
+    def cos_anneal(self) -> float:
+        n = self.cfg.renderer.cos_anneal_steps
+        return 1.0 if n <= 0 else min(1.0, int(self.step) / n)
+
+    @property
+    def step_size(self) -> float:
+        return math.sqrt(3.0) * 2.0 * self.radius / self.cfg.renderer.march_steps
+
+    def finest_cell(self) -> float:
+        """Cell size of the finest active level (sets the curvature perturbation)."""
+        b = self.geometry.branches[-1]
+        res = b.grid.spec.resolutions[int(b.active_levels) - 1]
+        return 2.0 * self.radius / res
+
+    def fd_eps(self) -> float:
+        e = self.cfg.geometry.fd_eps
+        return e if e > 0 else 0.5 * self.finest_cell()
+
+    @torch.no_grad()
+    def update_grid(self, generator: torch.Generator, full: bool = False) -> float:
+        inv_s = float(self.variance())
+        return self.grid.update(self.geometry.sdf, inv_s, generator, full=full)
+
+    # ----------------------------------------------------------------------------------------- render
+    def render_rays(self, origins: Tensor, dirs: Tensor, background: Tensor, train: bool = False,
+                    generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """Render rays (NeuS, Eq. 1) and return per-ray maps plus, in training, per-sample tensors for losses."""
+        n_rays = origins.shape[0]
+        rc = self.cfg.renderer
+        s = march(origins, dirs, self.grid, self.radius, self.step_size, rc.max_samples_per_ray,
+                  generator if train else None)
+        inv_s = self.variance()
+        n_marched = s.n
+        if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
+            with torch.no_grad():
+                sdf0 = self.geometry.sdf(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
+            keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(), rc.early_stop_eps)
+            s = s.select(keep)
+        d = dirs[s.ray_idx]
+        x = origins[s.ray_idx] + d * s.t[:, None]
+        sdf, feat, grad = self.geometry.with_gradient(x, create_graph=train, fd_eps=self.fd_eps())
+        normal = F.normalize(grad, dim=-1)
+        alpha = neus_alpha(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
+        weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
+        # colour only where it can be seen: samples of negligible weight add nothing to any pixel
+        vis = weights.detach() > self.cfg.renderer.color_weight_eps
+        col_vis = self.appearance(feat[vis], normal[vis], d[vis])
+        w_vis, r_vis = weights[vis], s.ray_idx[vis]
+        out: dict[str, Tensor] = {}
+        opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)
+        if self.background is not None:
+            background = self.background(dirs)
+        for key, val in col_vis.items():
+            out[key] = composite(val, w_vis, r_vis, n_rays)
+        out["rgb"] = out["rgb"] + (1.0 - opacity[:, None]) * background
+        out["opacity"] = opacity
+        out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
+        out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
+        out["inv_s"] = inv_s.detach()
+        out["n_samples"] = torch.tensor(s.n)
+        out["n_marched"] = torch.tensor(n_marched)
+        if train:
+            out.update(_x=x, _dirs=d, _grad=grad, _normal=normal, _weights=weights, _ray_idx=s.ray_idx)
+        return out
+
+    @torch.no_grad()
+    def render_image(self, origins: Tensor, dirs: Tensor, background: Tensor, chunk: int) -> dict[str, Tensor]:
+        """Chunked rendering of many rays (an image) within a memory budget; outputs on the rays' device."""
+        parts: dict[str, list[Tensor]] = {}
+        for i in range(0, origins.shape[0], chunk):
+            out = self.render_rays(origins[i : i + chunk], dirs[i : i + chunk], background[i : i + chunk])
+            for k, v in out.items():
+                if v.dim() > 0:
+                    parts.setdefault(k, []).append(v.detach())
+        return {k: torch.cat(v) for k, v in parts.items()}
+
+    # ----------------------------------------------------------------------------------------- losses
+    def losses(self, out: dict[str, Tensor], target: Tensor, mask: Tensor | None,
+               generator: torch.Generator | None) -> dict[str, Tensor]:
+        """Loss dict (Eq. 17): weighted terms and their sum under ``total``."""
+        lc = self.cfg.loss
+        step = int(self.step)
+        terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out["rgb"], target, lc.rgb)}
+        grad = out["_grad"]
+        if grad.shape[0] == 0:
+            terms["total"] = terms["rgb"]
+            return terms
+        weights: dict[str, float] = {"rgb": 1.0}
+        if lc.eikonal > 0:
+            terms["eikonal"] = L.eikonal_loss(grad)
+            weights["eikonal"] = lc.eikonal
+        curv_w = lc.curvature * (min(1.0, step / lc.curvature_ramp_steps) if lc.curvature_ramp_steps > 0 else 1.0)
+        if curv_w > 0:
+            x, n = out["_x"], out["_normal"]
+            k = min(x.shape[0], max(1024, x.shape[0] // 4))
+            sel = torch.randperm(x.shape[0], generator=generator, device="cpu")[:k].to(x.device)
+            x_eps = L.tangent_perturbation(x[sel], n[sel], self.finest_cell(), generator)
+            _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
+            terms["curvature"] = L.curvature_loss(n[sel], F.normalize(g_eps, dim=-1))
+            weights["curvature"] = curv_w
+        if lc.orientation > 0:
+            terms["orientation"] = L.orientation_loss(out["_weights"], out["_normal"], out["_dirs"],
+                                                      out["_ray_idx"], target.shape[0])
+            weights["orientation"] = lc.orientation
+        if lc.entropy > 0:
+            terms["entropy"] = L.alpha_entropy_loss(out["opacity"])
+            weights["entropy"] = lc.entropy
+        if lc.mask > 0 and mask is not None:
+            terms["mask"] = L.mask_loss(out["opacity"], mask)
+            weights["mask"] = lc.mask
+        terms["total"] = sum(weights[k] * terms[k] for k in weights)
+        return terms
+
+    # ----------------------------------------------------------------------------------------- queries
+    @torch.no_grad()
+    def diffuse_color(self, x: Tensor) -> Tensor:
+        """View-branch colour at ``x`` seen head-on (along -n): vertex colours for exported meshes."""
+        _, feat, grad = self.geometry.with_gradient(x, create_graph=False, fd_eps=self.fd_eps())
+        n = F.normalize(grad, dim=-1)
+        return self.appearance(feat, n, -n)["c_view"]
+
+    def param_groups(self) -> list[dict]:
+        var = [self.variance.variance]
+        other = [p for n, p in self.named_parameters() if not n.startswith("variance.")]
+        return [{"params": other, "name": "model"}, {"params": var, "name": "variance"}]

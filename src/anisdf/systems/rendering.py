@@ -1,0 +1,74 @@
+"""Rendering whole views of a trained model into the maps people look at."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from anisdf.data.rays import RayDataset
+from anisdf.data.scene import Scene
+from anisdf.models.anisdf import AniSDFModel
+
+
+@torch.no_grad()
+def render_rays_to_maps(model: AniSDFModel, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
+                        hw: tuple[int, int], chunk: int) -> dict[str, np.ndarray]:
+    """Float maps [H, W, C] on the CPU: rgb, normal (unit, world), depth, opacity, c_view, c_ref, weight."""
+    h, w = hw
+    out = model.render_image(origins, dirs, bg, chunk)
+    maps: dict[str, np.ndarray] = {}
+    for k, v in out.items():
+        if k.startswith("_") or v.shape[0] != h * w:
+            continue
+        maps[k] = v.float().reshape(h, w, -1).cpu().numpy()
+    opacity = maps["opacity"][..., 0]
+    n = F.normalize(torch.from_numpy(maps["normal"]), dim=-1).numpy()
+    maps["normal"] = n
+    if "weight" in maps:  # the blend weight is a per-sample quantity composited by opacity: show it per surface
+        maps["weight"] = maps["weight"] / np.maximum(maps["opacity"], 1e-6)
+    maps["depth"] = maps["depth"] / np.maximum(maps["opacity"], 1e-6)
+    maps["opacity"] = opacity[..., None]
+    return maps
+
+
+def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chunk: int) -> dict:
+    """Render view ``i`` of a split on a white background; returns maps, the target and its PSNR."""
+    from anisdf.systems.trainer import psnr_from_mse, targets
+
+    batch, hw = data.image(i)
+    target, bg = targets(batch, scene, False, torch.Generator())
+    maps = render_rays_to_maps(model, batch.origins, batch.directions, bg, hw, chunk)
+    gt = target.reshape(*hw, 3).float().cpu().numpy()
+    mse = float(np.mean((np.clip(maps["rgb"], 0, 1) - gt) ** 2))
+    return {"maps": maps, "gt": gt, "psnr": psnr_from_mse(mse), "hw": hw}
+
+
+def panel(res: dict) -> np.ndarray:
+    """Side-by-side picture: ground truth, render, normals, and the blend maps when present."""
+    from anisdf.export.visualize import (
+        depth_to_image,
+        hstack_labeled,
+        normal_to_image,
+        scalar_to_image,
+        to_uint8,
+    )
+
+    m = res["maps"]
+    fg = m["opacity"][..., 0] > 0.5
+    imgs = [to_uint8(res["gt"]), to_uint8(m["rgb"]), normal_to_image(m["normal"] * fg[..., None])]
+    labels = ["ground truth", f"render {res['psnr']:.2f} dB", "normal"]
+    imgs.append(depth_to_image(m["depth"][..., 0], mask=fg))
+    labels.append("depth")
+    if "c_view" in m and "c_ref" in m:
+        imgs += [to_uint8(m["c_view"]), to_uint8(m["c_ref"]), scalar_to_image(np.clip(m["weight"][..., 0], 0, 1))]
+        labels += ["c_view", "c_ref", "weight w"]
+    return hstack_labeled(imgs, labels)
+
+
+def save_panel(path: Path, res: dict) -> None:
+    from anisdf.export.visualize import save_image
+
+    save_image(path, panel(res))

@@ -1,0 +1,264 @@
+"""Training loop: dynamic ray batches, AdamW with warm-up + exponential decay, logging, checkpoints, resume.
+
+A run folder holds ``config.yaml``, ``run.json`` (dataset path), ``checkpoints/last.pt``, ``tb/`` (TensorBoard),
+``val/`` (validation images) and ``log.jsonl``. Checkpoints are atomic and carry every random state, so
+``--resume`` continues exactly where an uninterrupted run would be (same seed, same result on CPU).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from anisdf.config import Config, config_from_dict
+from anisdf.data.rays import RayBatch, RayDataset
+from anisdf.data.scene import Scene
+from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.models.anisdf import AniSDFModel
+from anisdf.systems.checkpoint import atomic_save, load_checkpoint
+
+log = logging.getLogger("anisdf")
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise AnisdfError(f"--device {name}: CUDA is not available in this torch build")
+    return torch.device(name)
+
+
+def psnr_from_mse(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-10))
+
+
+def lr_factor(step: int, cfg: Config) -> float:
+    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end."""
+    o = cfg.optim
+    if step < o.warmup_steps:
+        return 0.01 + 0.99 * step / max(o.warmup_steps, 1)
+    span = max(cfg.train.max_steps - o.warmup_steps, 1)
+    return o.final_lr_factor ** (min(step - o.warmup_steps, span) / span)
+
+
+def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
+    learn_bg = scene.background == "opaque" and scene.masks is None
+    return AniSDFModel(cfg, learn_background=learn_bg).to(device)
+
+
+def targets(batch: RayBatch, scene: Scene, train: bool, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ground truth and background per ray. Opaque photos with masks are treated as objects: the photo is
+    composited on the background through its mask (random colours in training, white otherwise)."""
+    if scene.background == "opaque" and batch.mask is not None:
+        n = batch.rgb.shape[0]
+        bg = (torch.rand(n, 3, generator=gen).to(batch.rgb.device) if train
+              else torch.ones(n, 3, device=batch.rgb.device))
+        m = batch.mask[:, None]
+        return batch.rgb * m + bg * (1 - m), bg
+    return batch.rgb, batch.background
+
+
+@dataclass
+class TrainState:
+    step: int = 0
+    n_rays: int = 1024
+    train_seconds: float = 0.0
+    loss_ema: float = 0.0
+
+
+class Trainer:
+    def __init__(self, cfg: Config, scene: Scene, out_dir: Path, device: torch.device, progress: bool = True):
+        self.cfg, self.scene, self.out = cfg, scene, Path(out_dir)
+        self.device = device
+        self.progress = progress
+        # Tiny hash-table gradients squared in Adam become denormal floats, which are 10-100x slower on CPUs.
+        torch.set_flush_denormal(True)
+        torch.manual_seed(cfg.train.seed)
+        self.gen = torch.Generator().manual_seed(cfg.train.seed)
+        self.model = build_model(cfg, scene, device)
+        o = cfg.optim
+        groups = self.model.param_groups()
+        groups[0]["lr"], groups[1]["lr"] = o.lr, o.lr_variance
+        self.opt = torch.optim.AdamW(groups, betas=o.betas, eps=o.eps, weight_decay=o.weight_decay)
+        self.base_lrs = [g["lr"] for g in self.opt.param_groups]
+        self.state = TrainState(n_rays=cfg.renderer.init_rays)
+        self.train_data = RayDataset(scene, "train", device=device, background=cfg.data.background)
+        self.ckpt_path = self.out / "checkpoints" / "last.pt"
+        self._writer = None
+
+    # ----------------------------------------------------------------------------------------- state
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "version": 1,
+            "config": self.cfg.to_dict(),
+            "model": self.model.state_dict(),
+            "optimizer": self.opt.state_dict(),
+            "state": vars(self.state).copy(),
+            "generator": self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "to_world": np.asarray(self.scene.to_world),
+            "data": str(self.scene.root),
+        }
+
+    def load_state_dict(self, ck: dict[str, Any]) -> None:
+        self.model.load_state_dict(ck["model"])
+        self.opt.load_state_dict(ck["optimizer"])
+        self.state = TrainState(**ck["state"])
+        self.gen.set_state(ck["generator"])
+        torch.set_rng_state(ck["torch_rng"])
+        self.model.set_step(self.state.step)
+
+    def save(self) -> None:
+        for p in self.model.parameters():
+            if not torch.isfinite(p).all():
+                raise TrainingDiverged("parameters became non-finite; not overwriting the last good checkpoint "
+                                       f"{self.ckpt_path}")
+        atomic_save(self.state_dict(), self.ckpt_path)
+
+    def write_run_files(self) -> None:
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
+        (self.out / "run.json").write_text(json.dumps({
+            "data": str(Path(self.scene.root).resolve()), "format": self.scene.format,
+            "preset": self.cfg.preset, "to_world": np.asarray(self.scene.to_world).tolist(),
+        }, indent=2))
+
+    @property
+    def writer(self):
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.out / "tb"))
+        return self._writer
+
+    # ----------------------------------------------------------------------------------------- step
+    def train_step(self) -> dict[str, float]:
+        st, cfg, model = self.state, self.cfg, self.model
+        model.train()
+        model.set_step(st.step)
+        rc = cfg.renderer
+        if st.step % rc.grid_update_every == 0:
+            warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
+            model.update_grid(self.gen, full=warm)
+        f = lr_factor(st.step, cfg)
+        for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
+            g["lr"] = base * f
+        batch = self.train_data.sample(st.n_rays, self.gen)
+        target, bg = targets(batch, self.scene, True, self.gen)
+        use_amp = cfg.train.amp and self.device.type == "cuda"
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
+            out = model.render_rays(batch.origins, batch.directions, bg, train=True, generator=self.gen)
+            terms = model.losses(out, target, batch.mask, self.gen)
+        loss = terms["total"]
+        value = float(loss.detach())
+        if not math.isfinite(value) or (st.step > 100 and st.loss_ema > 0
+                                        and value > cfg.loss.explode_factor * st.loss_ema):
+            raise TrainingDiverged(
+                f"step {st.step}: loss {value:.4g} is {'not finite' if not math.isfinite(value) else 'exploding'} "
+                f"(running mean {st.loss_ema:.4g}); the last good checkpoint {self.ckpt_path} is intact. "
+                "Try a lower optim.lr or loss weights.")
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        n_samples, n_marched = int(out["n_samples"]), int(out["n_marched"])
+        # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4)
+        scale = min(rc.samples_per_step / max(n_samples, 1), 4 * rc.samples_per_step / max(n_marched, 1))
+        st.n_rays = int(min(max(st.n_rays * scale, rc.min_rays), rc.max_rays))
+        st.loss_ema = value if st.loss_ema == 0 else 0.98 * st.loss_ema + 0.02 * value
+        mse = float(torch.mean((out["rgb"].detach() - target) ** 2))
+        st.step += 1
+        stats = {k: float(v.detach()) for k, v in terms.items()}
+        stats.update(psnr=psnr_from_mse(mse), n_samples=n_samples, n_rays=batch.origins.shape[0],
+                     inv_s=float(out["inv_s"]), lr=self.opt.param_groups[0]["lr"])
+        return stats
+
+    @torch.no_grad()
+    def validate(self) -> float:
+        from anisdf.systems.rendering import render_view, save_panel
+
+        split = "test" if self.scene.splits.get("test") else "train"
+        data = RayDataset(self.scene, split, device=self.device, background="white",
+                          downscale=self.cfg.train.val_downscale)
+        res = render_view(self.model, data, 0, self.scene, self.cfg.renderer.eval_chunk_rays)
+        path = self.out / "val" / f"step_{self.state.step:06d}.png"
+        save_panel(path, res)
+        self.writer.add_scalar("val/psnr", res["psnr"], self.state.step)
+        return res["psnr"]
+
+    # ----------------------------------------------------------------------------------------- loop
+    def fit(self, max_steps: int | None = None, max_minutes: float | None = None) -> dict[str, Any]:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        max_steps = max_steps or cfg.train.max_steps
+        max_minutes = cfg.train.max_minutes if max_minutes is None else max_minutes
+        self.write_run_files()
+        start_step = self.state.step
+        t_start = time.perf_counter()
+        t0_seconds = self.state.train_seconds
+        bar = tqdm(total=max_steps, initial=start_step, disable=not self.progress, dynamic_ncols=True,
+                   desc="train", unit="step")
+        status = "finished"
+        last_stats: dict[str, float] = {}
+        sps_window: list[tuple[float, int]] = []
+        logf = (self.out / "log.jsonl").open("a")
+        try:
+            while self.state.step < max_steps:
+                t = time.perf_counter()
+                stats = self.train_step()
+                dt = time.perf_counter() - t
+                self.state.train_seconds = t0_seconds + (time.perf_counter() - t_start)
+                sps_window = (sps_window + [(dt, stats["n_samples"])])[-20:]
+                sps = sum(n for _, n in sps_window) / max(sum(d for d, _ in sps_window), 1e-9)
+                stats["samples_per_s"] = sps
+                last_stats = stats
+                step = self.state.step
+                bar.update(1)
+                bar.set_postfix(loss=f"{stats['total']:.4f}", psnr=f"{stats['psnr']:.2f}",
+                                samples_s=f"{sps / 1e3:.1f}k", rays=stats["n_rays"], refresh=False)
+                if step % cfg.train.log_every == 0 or step == 1:
+                    for k, v in stats.items():
+                        self.writer.add_scalar(f"train/{k}", v, step)
+                    logf.write(json.dumps({"step": step, "time": round(self.state.train_seconds, 2),
+                                           **{k: round(v, 6) for k, v in stats.items()}}) + "\n")
+                    logf.flush()
+                if cfg.train.ckpt_every > 0 and step % cfg.train.ckpt_every == 0:
+                    self.save()
+                if cfg.train.val_every > 0 and step % cfg.train.val_every == 0:
+                    self.validate()
+                if max_minutes and self.state.train_seconds >= max_minutes * 60:
+                    status = "time limit"
+                    break
+        except KeyboardInterrupt:
+            status = "interrupted"
+        finally:
+            bar.close()
+            logf.close()
+        self.save()
+        if self._writer is not None:
+            self._writer.flush()
+        return {"status": status, "step": self.state.step, "train_seconds": self.state.train_seconds,
+                "checkpoint": str(self.ckpt_path), **{k: last_stats[k] for k in ("psnr", "total") if k in last_stats}}
+
+
+def load_run(run_dir: Path, device: torch.device | str = "cpu") -> tuple[Config, AniSDFModel, dict[str, Any]]:
+    """Model and metadata of a trained run (for rendering, export and evaluation)."""
+    run_dir = Path(run_dir)
+    torch.set_flush_denormal(True)
+    ck = load_checkpoint(run_dir / "checkpoints" / "last.pt", map_location=device)
+    cfg = config_from_dict(ck["config"])
+    learn_bg = any(k.startswith("background.") for k in ck["model"])
+    model = AniSDFModel(cfg, learn_background=learn_bg).to(device)
+    model.load_state_dict(ck["model"])
+    model.set_step(ck["state"]["step"])
+    model.eval()
+    return cfg, model, ck

@@ -1,0 +1,218 @@
+"""Unit tests of the model's parts: hash grid, ASG, SH, SDF field, NeuS rendering, losses, config."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from anisdf.config import load_config
+from anisdf.errors import AnisdfError
+from anisdf.fields.asg import asg_encode, asg_frames
+from anisdf.fields.encodings import sh_encoding
+from anisdf.fields.hash_encoding import GridSpec, corner_indices, hash_encode_reference, trilinear_weights
+from anisdf.fields.sdf_field import SDFField
+from anisdf.model_components import losses as L
+from anisdf.model_components.neus_renderer import neus_alpha, packed_weights
+from anisdf.model_components.occupancy_grid import OccupancyGrid
+from anisdf.model_components.ray_marching import march
+
+SMALL = GridSpec(n_levels=5, features_per_level=2, log2_hashmap_size=10, base_resolution=4, per_level_scale=1.8)
+
+
+def test_small_spec_has_dense_and_hashed_levels():
+    assert SMALL.hashed[0] is False and SMALL.hashed[-1] is True
+
+
+def test_hash_encoding_matches_all_levels_formulation():
+    torch.manual_seed(0)
+    table = torch.randn(SMALL.n_params, 2, dtype=torch.float64)
+    x = torch.rand(500, 3, dtype=torch.float64)
+    x[:4] = torch.tensor([[0.0, 0, 0], [1, 1, 1], [0.5, 0.25, 1], [1, 0, 0.5]], dtype=torch.float64)
+    idx, frac = corner_indices(x, SMALL)
+    expected = (table[idx] * trilinear_weights(frac)[..., None]).sum(2).reshape(500, -1)
+    torch.testing.assert_close(hash_encode_reference(x, table, SMALL), expected)
+
+
+def test_hash_encoding_input_gradient_matches_finite_differences():
+    torch.manual_seed(1)
+    table = torch.randn(SMALL.n_params, 2, dtype=torch.float64)
+    x = (torch.rand(64, 3, dtype=torch.float64) * 0.9 + 0.05).requires_grad_(True)
+    proj = torch.randn(SMALL.output_dim, dtype=torch.float64)
+    (g,) = torch.autograd.grad((hash_encode_reference(x, table, SMALL) @ proj).sum(), x)
+    eps = 1e-7
+    for k in range(3):
+        e = torch.zeros(3, dtype=torch.float64)
+        e[k] = eps
+        with torch.no_grad():
+            fd = (hash_encode_reference(x + e, table, SMALL) @ proj - hash_encode_reference(x - e, table, SMALL)
+                  @ proj) / (2 * eps)
+        torch.testing.assert_close(g[:, k], fd, atol=1e-5, rtol=1e-4)
+
+
+def test_hash_encoding_table_gradient_is_the_trilinear_weights():
+    table = torch.zeros(SMALL.n_params, 2, dtype=torch.float64, requires_grad=True)
+    x = torch.rand(1, 3, dtype=torch.float64)
+    hash_encode_reference(x, table, SMALL)[0, 0].backward()  # level 0, feature 0
+    idx, frac = corner_indices(x, SMALL)
+    w = trilinear_weights(frac)[0, 0]
+    torch.testing.assert_close(table.grad[idx[0, 0], 0], w)
+    assert math.isclose(float(table.grad.sum()), 1.0, rel_tol=1e-9)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_reference_encoding_cpu_equals_cuda():
+    table = torch.randn(SMALL.n_params, 2)
+    x = torch.rand(1000, 3)
+    torch.testing.assert_close(hash_encode_reference(x.cuda(), table.cuda(), SMALL).cpu(),
+                               hash_encode_reference(x, table, SMALL), atol=1e-5, rtol=1e-5)
+
+
+def test_asg_lobe_peaks_on_its_axis_and_is_anisotropic():
+    frames = asg_frames(8, 16)
+    assert frames.shape == (128, 3, 3)
+    torch.testing.assert_close(frames @ frames.transpose(1, 2), torch.eye(3).expand(128, 3, 3), atol=1e-5,
+                               rtol=0)
+    one = frames[37:38]
+    x_ax, y_ax, z_ax = one[0]
+    lam, mu, xi = torch.tensor([[20.0]]), torch.tensor([[2.0]]), torch.ones(1, 1, 1)
+    on_axis = asg_encode(z_ax[None], one, lam, mu, xi)
+    tilt = 0.3
+    along_x = asg_encode(F.normalize(z_ax + tilt * x_ax, dim=0)[None], one, lam, mu, xi)
+    along_y = asg_encode(F.normalize(z_ax + tilt * y_ax, dim=0)[None], one, lam, mu, xi)
+    assert on_axis.item() == pytest.approx(1.0, abs=1e-5)
+    assert along_x.item() < along_y.item() < on_axis.item()  # sharper along x since lambda > mu
+    behind = asg_encode(-z_ax[None], one, lam, mu, xi)
+    assert behind.item() == 0.0
+
+
+def test_sh_encoding_is_orthonormal():
+    torch.manual_seed(0)
+    d = F.normalize(torch.randn(400_000, 3, dtype=torch.float64), dim=-1)
+    y = sh_encoding(d, 4)
+    gram = 4 * math.pi * (y.T @ y) / d.shape[0]
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=0.03, rtol=0)
+
+
+def _sphere_field(kind: str, normals: str = "analytic") -> SDFField:
+    cfg = load_config(None, [f"geometry.kind={kind}", "geometry.log2_hashmap_size=12", "geometry.n_levels=6",
+                             "geometry.coarse_levels=4", "geometry.max_resolution=64", f"geometry.normals={normals}",
+                             "geometry.encoding_backend=torch"])
+    torch.manual_seed(0)
+    return SDFField(cfg.geometry)
+
+
+@pytest.mark.parametrize("kind", ["fused", "single"])
+def test_geometric_init_is_a_sphere_of_radius_half(kind):
+    field = _sphere_field(kind)
+    x = F.normalize(torch.randn(256, 3), dim=-1) * 0.5
+    with torch.no_grad():
+        sdf = field.sdf(x)
+        outside = field.sdf(x * 1.6)
+    assert sdf.abs().mean() < 0.1  # SAL init is approximate at width 64
+    assert (outside > 0).all() and (field.sdf(x * 0.2) < 0).all()
+
+
+def test_fused_sdf_is_the_sum_of_branches():
+    field = _sphere_field("fused")
+    x = torch.rand(10, 3) - 0.5
+    with torch.no_grad():
+        a, b = (br(x) for br in field.branches)
+        sdf, feat = field(x)
+    torch.testing.assert_close(sdf, a[:, 0] + b[:, 0])
+    torch.testing.assert_close(feat, a[:, 1:] + b[:, 1:])
+
+
+def test_finite_difference_normals_match_analytic_gradient():
+    fa = _sphere_field("fused", "analytic")
+    ff = _sphere_field("fused", "finite_difference")
+    ff.load_state_dict(fa.state_dict())
+    x = F.normalize(torch.randn(128, 3), dim=-1) * 0.45
+    _, _, ga = fa.with_gradient(x, create_graph=False)
+    _, _, gf = ff.with_gradient(x, create_graph=False, fd_eps=1e-3)
+    cos = F.cosine_similarity(ga, gf, dim=-1)
+    assert cos.min() > 0.99
+
+
+def test_level_masking_switches_levels_on_progressively():
+    field = _sphere_field("fused")
+    coarse, fine = field.branches
+    assert int(coarse.active_levels) == 4 and int(fine.active_levels) == 6  # capped by n_levels
+    cfg = field.cfg
+    field.set_step(0)
+    assert int(coarse.active_levels) == 4
+    field.set_step(cfg.level_start_step + 10 * cfg.level_every)
+    assert int(coarse.active_levels) == coarse.n_levels
+
+
+def _sphere_sdf(x: torch.Tensor, r: float = 0.5) -> torch.Tensor:
+    return x.norm(dim=-1) - r
+
+
+def test_neus_weights_sum_to_one_on_a_ray_hitting_a_sphere():
+    origins = torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.3, -2.0], [0.0, 0.9, -2.0]])
+    dirs = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
+    s = march(origins, dirs, None, radius=1.0, step=0.004, max_samples=2000)
+    x = s.positions(origins, dirs)
+    sdf = _sphere_sdf(x)
+    grad = F.normalize(x, dim=-1)
+    alpha = neus_alpha(sdf, grad, dirs[s.ray_idx], s.dt, torch.tensor(500.0), cos_anneal=1.0)
+    w, _ = packed_weights(alpha, s.ray_idx, 3)
+    total = torch.zeros(3).index_add_(0, s.ray_idx, w)
+    assert total[0] == pytest.approx(1.0, abs=1e-3) and total[1] == pytest.approx(1.0, abs=1e-3)
+    assert total[2] < 5e-3  # misses the sphere (only the 1e-5 alpha floor per sample)
+    depth = torch.zeros(3).index_add_(0, s.ray_idx, w * s.t)
+    assert depth[0] == pytest.approx(1.5, abs=0.01)
+
+
+def test_packed_weights_match_dense_cumprod():
+    torch.manual_seed(0)
+    counts = torch.tensor([3, 0, 5, 1])
+    ray_idx = torch.repeat_interleave(torch.arange(4), counts)
+    alpha = torch.rand(int(counts.sum()))
+    w, trans = packed_weights(alpha, ray_idx, 4)
+    k = 0
+    for _r, c in enumerate(counts.tolist()):
+        a = alpha[k : k + c]
+        t = torch.cumprod(torch.cat([torch.ones(1), 1 - a[:-1]]), 0) if c else a
+        torch.testing.assert_close(trans[k : k + c], t)
+        torch.testing.assert_close(w[k : k + c], t * a)
+        k += c
+
+
+def test_occupancy_grid_keeps_the_shell_of_a_sphere():
+    grid = OccupancyGrid(32, 1.0)
+    frac = grid.update(_sphere_sdf, inv_s=1e4, generator=torch.Generator().manual_seed(0), full=True)
+    assert 0.02 < frac < 0.3
+    on = F.normalize(torch.randn(1000, 3), dim=-1) * 0.5
+    assert grid.query(on).all()
+    assert not grid.query(torch.zeros(1, 3)).any() and not grid.query(torch.full((1, 3), 0.9)).any()
+
+
+def test_losses_behave():
+    n = F.normalize(torch.randn(100, 3), dim=-1)
+    assert L.eikonal_loss(n * 2) == pytest.approx(1.0)
+    assert L.eikonal_loss(n) < 1e-10
+    assert L.curvature_loss(n, n) < 1e-10 and L.curvature_loss(n, -n) == pytest.approx(4.0)
+    assert L.alpha_entropy_loss(torch.tensor([0.0, 1.0])) < 2e-3
+    assert L.alpha_entropy_loss(torch.tensor([0.5])) == pytest.approx(math.log(2), rel=1e-3)
+    d = torch.tensor([[0.0, 0, 1]])
+    facing = L.orientation_loss(torch.ones(1), -d, d, torch.zeros(1, dtype=torch.long), 1)
+    back = L.orientation_loss(torch.ones(1), d, d, torch.zeros(1, dtype=torch.long), 1)
+    assert facing == 0 and back == pytest.approx(1.0)
+
+
+def test_config_overrides_and_errors():
+    cfg = load_config("cpu-quick", ["geometry.kind=single", "renderer.samples_per_step=2**14", "train.amp=false"])
+    assert cfg.geometry.kind == "single" and cfg.renderer.samples_per_step == 16384 and cfg.train.amp is False
+    assert cfg.data.downscale == 2
+    with pytest.raises(AnisdfError, match="unknown config key"):
+        load_config(None, ["geometry.nope=1"])
+    with pytest.raises(AnisdfError, match="must be one of"):
+        load_config(None, ["appearance.kind=asg2"])
+    with pytest.raises(AnisdfError, match="cannot read"):
+        load_config(None, ["geometry.n_levels=many"])
+    with pytest.raises(AnisdfError, match="unknown preset"):
+        load_config("nope")

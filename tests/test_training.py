@@ -1,0 +1,146 @@
+"""Training on a tiny analytic scene made by the test: quality rises, resume is exact, failures are clean."""
+
+from __future__ import annotations
+
+import errno
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from anisdf.cli import main
+from anisdf.config import load_config
+from anisdf.data.dataparsers import load_scene
+from anisdf.data.synthetic import make_synthetic_scene, scene_sdf
+from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.systems import checkpoint
+from anisdf.systems.trainer import Trainer
+
+TINY = [
+    "geometry.n_levels=8", "geometry.coarse_levels=5", "geometry.coarse_start_levels=3",
+    "geometry.fine_start_levels=5", "geometry.level_start_step=40", "geometry.level_every=20",
+    "geometry.log2_hashmap_size=14", "geometry.base_resolution=8", "geometry.max_resolution=128",
+    "geometry.feature_dim=15", "geometry.hidden_dim=32", "geometry.encoding_backend=torch",
+    "appearance.asg_theta=4", "appearance.asg_phi=8", "appearance.par_hidden=32", "appearance.ref_hidden=32",
+    "appearance.view_hidden=32", "appearance.weight_hidden=32",
+    "renderer.grid_resolution=32", "renderer.march_steps=256", "renderer.samples_per_step=4096",
+    "renderer.init_rays=256", "renderer.grid_warmup_steps=32", "renderer.cos_anneal_steps=100",
+    "optim.warmup_steps=20", "optim.lr_variance=0.01", "loss.curvature_ramp_steps=50",
+    "train.val_every=0", "train.ckpt_every=0", "train.log_every=10", "data.downscale=1",
+]
+
+
+@pytest.fixture(scope="module")
+def toy_scene(tmp_path_factory) -> Path:
+    return make_synthetic_scene(tmp_path_factory.mktemp("toy"), n_train=16, n_test=2, size=32, mesh_resolution=48)
+
+
+def _trainer(scene_dir: Path, out: Path, extra: list[str] | None = None) -> Trainer:
+    cfg = load_config("cpu-quick", TINY + (extra or []))
+    scene = load_scene(scene_dir, downscale=cfg.data.downscale)
+    return Trainer(cfg, scene, out, torch.device("cpu"), progress=False)
+
+
+def test_training_raises_psnr_and_finds_the_surface(toy_scene, tmp_path):
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=100"])
+    first = tr.train_step()["psnr"]
+    summary = tr.fit()
+    assert summary["status"] == "finished" and summary["step"] == 100
+    psnr = tr.validate()
+    print(f"toy scene: psnr {first:.2f} -> {psnr:.2f} dB in {summary['train_seconds']:.1f} s")
+    assert psnr > first + 4 and psnr > 20.0, (first, psnr)
+    # the SDF's zero level lies near the true surface: points on the analytic surface have small |SDF|
+    g = torch.Generator().manual_seed(0)
+    p = (torch.rand(20000, 3, generator=g) * 2 - 1) * 0.8
+    for _ in range(20):  # project onto the analytic surface
+        p.requires_grad_(True)
+        d = scene_sdf(p)
+        (grad,) = torch.autograd.grad(d.sum(), p)
+        p = (p - d[:, None] * grad).detach()
+    on = p[scene_sdf(p).abs() < 1e-4]
+    norm = torch.as_tensor(tr.scene.to_normalised_frame(on.numpy()), dtype=torch.float32)
+    with torch.no_grad():
+        err = tr.model.geometry.sdf(norm).abs() * tr.scene.scale
+    print(f"median |sdf| on the true surface: {float(err.median()):.4f}")
+    assert float(err.median()) < 0.03, float(err.median())
+    assert (tmp_path / "run" / "checkpoints" / "last.pt").is_file()
+    assert (tmp_path / "run" / "log.jsonl").read_text().count("\n") >= 10
+
+
+def test_resume_continues_exactly(toy_scene, tmp_path):
+    a = _trainer(toy_scene, tmp_path / "a", ["train.max_steps=8"])
+    a.fit()
+    b = _trainer(toy_scene, tmp_path / "b", ["train.max_steps=8"])
+    b.fit(max_steps=4)
+    c = _trainer(toy_scene, tmp_path / "b", ["train.max_steps=8"])
+    c.load_state_dict(checkpoint.load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt"))
+    assert c.state.step == 4
+    c.fit()
+    sa, sc = a.model.state_dict(), c.model.state_dict()
+    assert sa.keys() == sc.keys()
+    for k in sa:
+        assert torch.equal(sa[k], sc[k]), k
+
+
+def test_same_seed_same_result(toy_scene, tmp_path):
+    runs = []
+    for name in ("x", "y"):
+        t = _trainer(toy_scene, tmp_path / name, ["train.max_steps=3"])
+        t.fit()
+        runs.append(t.model.geometry.branches[0].grid.table.detach().clone())
+    assert torch.equal(runs[0], runs[1])
+
+
+def test_nan_loss_stops_with_clear_message_and_keeps_checkpoint(toy_scene, tmp_path):
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=2"])
+    tr.fit()
+    ck = tmp_path / "run" / "checkpoints" / "last.pt"
+    before = ck.read_bytes()
+    with torch.no_grad():
+        tr.model.variance.variance.fill_(float("nan"))
+    with pytest.raises(TrainingDiverged, match="not finite.*intact"):
+        tr.fit(max_steps=5)
+    assert ck.read_bytes() == before
+    assert checkpoint.load_checkpoint(ck)["state"]["step"] == 2
+
+
+def test_checkpoint_write_failure_keeps_previous(tmp_path, monkeypatch):
+    path = tmp_path / "ck.pt"
+    checkpoint.atomic_save({"a": 1}, path)
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(AnisdfError, match="No space left.*previous one is kept"):
+        checkpoint.atomic_save({"a": 2}, path)
+    monkeypatch.undo()
+    assert checkpoint.load_checkpoint(path) == {"a": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["ck.pt"]
+
+
+def test_cli_train_resume_and_errors(toy_scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", str(toy_scene), "--out", str(out), "--preset", "cpu-quick", "--max-steps", "2",
+            "--no-progress", *TINY]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["step"] == 2
+    assert main(args) == 2  # refuses to overwrite a run
+    assert "--resume" in capsys.readouterr().err
+    assert main(["train", str(toy_scene), "--out", str(out), "--resume", "--max-steps", "3", "--no-progress"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 3
+    assert main(["train", str(tmp_path / "missing"), "--out", str(tmp_path / "r2"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]
+    assert main(["train", str(toy_scene), "--out", str(tmp_path / "r3"), "geometry.bogus=1"]) == 2
+    assert "unknown config key" in capsys.readouterr().err
+
+
+def test_loss_dict_has_every_term(toy_scene, tmp_path):
+    tr = _trainer(toy_scene, tmp_path / "run", ["loss.curvature_ramp_steps=0", "loss.mask=0.1"])
+    stats = tr.train_step()
+    for key in ("rgb", "eikonal", "curvature", "orientation", "entropy", "total"):
+        assert key in stats and np.isfinite(stats[key]), key
