@@ -216,3 +216,16 @@ def test_config_overrides_and_errors():
         load_config(None, ["geometry.n_levels=many"])
     with pytest.raises(AnisdfError, match="unknown preset"):
         load_config("nope")
+
+
+@pytest.mark.parametrize("normals", ["analytic", "finite_difference"])
+def test_empty_inputs_and_rays_that_miss_render_background(normals):
+    from anisdf.models.anisdf import AniSDFModel
+
+    cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", f"geometry.normals={normals}"])
+    model = AniSDFModel(cfg)
+    _, feat, grad = model.geometry.with_gradient(torch.zeros(0, 3), create_graph=False)
+    assert feat.shape == (0, cfg.geometry.feature_dim) and grad.shape == (0, 3)
+    out = model.render_image(torch.tensor([[0.0, 0, 5]]), torch.tensor([[0.0, 0, 1]]), torch.ones(1, 3), 8)
+    torch.testing.assert_close(out["rgb"], torch.ones(1, 3))
+    assert float(out["opacity"]) == 0.0

@@ -13,7 +13,7 @@ import torch
 from anisdf.cli import main
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
-from anisdf.data.synthetic import make_synthetic_scene, scene_sdf
+from anisdf.data.synthetic import scene_sdf
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.systems import checkpoint
 from anisdf.systems.trainer import Trainer
@@ -30,11 +30,6 @@ TINY = [
     "optim.warmup_steps=20", "optim.lr_variance=0.01", "loss.curvature_ramp_steps=50",
     "train.val_every=0", "train.ckpt_every=0", "train.log_every=10", "data.downscale=1",
 ]
-
-
-@pytest.fixture(scope="module")
-def toy_scene(tmp_path_factory) -> Path:
-    return make_synthetic_scene(tmp_path_factory.mktemp("toy"), n_train=16, n_test=2, size=32, mesh_resolution=48)
 
 
 def _trainer(scene_dir: Path, out: Path, extra: list[str] | None = None) -> Trainer:

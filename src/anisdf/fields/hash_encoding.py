@@ -119,7 +119,7 @@ def hash_encode_reference(x: Tensor, table: Tensor, spec: GridSpec) -> Tensor:
             idx = c[..., 0] + c[..., 1] * s + c[..., 2] * (s * s)
         f = frac[:, None, :]
         w = (cf * f + (1 - cf) * (1 - f)).prod(-1)  # [N, 8]
-        feats = table.index_select(0, (idx + off).reshape(-1)).view(n, 8, -1)
+        feats = table.index_select(0, (idx + off).reshape(-1)).view(n, 8, table.shape[1])
         outs.append(torch.einsum("nc,ncf->nf", w.to(table.dtype), feats))
     return torch.cat(outs, dim=-1)
 

@@ -132,7 +132,7 @@ class SDFField(nn.Module):
                 out_sdf, out_feat = self.forward((x[None] + eps * v[:, None]).reshape(-1, 3))
                 f = out_sdf.view(4, -1)
                 grad = (v[:, None, :] * f[..., None]).sum(0) / (4.0 * eps)
-                feat = out_feat.view(4, x.shape[0], -1).mean(0)
+                feat = out_feat.view(4, x.shape[0], out_feat.shape[-1]).mean(0)
                 return f.mean(0), feat, grad
         with torch.enable_grad():
             xg = x if x.requires_grad else x.detach().requires_grad_(True)

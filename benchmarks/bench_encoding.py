@@ -1,0 +1,11 @@
+"""Hash-grid encoding speed, reference vs compiled kernel: ``python benchmarks/bench_encoding.py [--json]``.
+
+The code lives in :mod:`anisdf.benchmarks.encoding` so that ``anisdf bench`` can run it from an installed package.
+"""
+
+import sys
+
+from anisdf.benchmarks.encoding import main
+
+if __name__ == "__main__":
+    sys.exit(main())

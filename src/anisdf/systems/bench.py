@@ -1,0 +1,133 @@
+"""``anisdf bench``: encoding and training-step throughput (reference vs fast), peak memory, time to quality.
+
+Speed targets live here, never in timed tests. Results are recorded in benchmarks/RESULTS.md.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import resource
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from anisdf.config import load_config
+
+DEFAULT_DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "bunny_plastic"
+
+
+def _scene(data: Path | None, downscale: float):
+    from anisdf.data.dataparsers import load_scene
+    from anisdf.data.synthetic import make_synthetic_scene
+
+    if data is None:
+        data = DEFAULT_DATA if DEFAULT_DATA.is_dir() else None
+    if data is None:
+        data = Path(tempfile.mkdtemp(prefix="anisdf-bench-"))
+        make_synthetic_scene(data, n_train=40, n_test=8, size=128)
+        downscale = 1
+    return load_scene(data, downscale=downscale)
+
+
+def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20,
+                     device: torch.device | None = None) -> dict[str, Any]:
+    """Samples per second of whole training steps (cpu-quick), after ``warmup`` steps."""
+    from anisdf.systems.trainer import Trainer
+
+    device = device or torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    cfg = load_config("cpu-quick", [f"geometry.encoding_backend={backend}", "train.val_every=0",
+                                    "train.ckpt_every=0"])
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
+        for _ in range(warmup):
+            tr.train_step()
+        n, t0 = 0, time.perf_counter()
+        for _ in range(steps):
+            n += tr.train_step()["n_samples"]
+        dt = time.perf_counter() - t0
+    return {"backend": backend, "steps": steps, "samples": n, "seconds": dt, "samples_per_s": n / dt,
+            "ms_per_step": 1000 * dt / steps}
+
+
+def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0), eval_every_s: float = 30.0,
+                 n_views: int = 4) -> dict[str, Any]:
+    """Train cpu-quick and record when the mean test PSNR (first ``n_views`` views) first reaches each target.
+
+    Evaluation time is excluded from the clock.
+    """
+    import numpy as np
+
+    from anisdf.data.rays import RayDataset
+    from anisdf.systems.rendering import render_view
+    from anisdf.systems.trainer import Trainer
+
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    cfg = load_config("cpu-quick", ["train.val_every=0", "train.ckpt_every=0"])
+    reached: dict[str, float | None] = {f"{t:g}": None for t in targets}
+    curve: list[tuple[float, int, float]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
+        test = RayDataset(scene, "test", device=device, background="white")
+        clock, next_eval = 0.0, eval_every_s
+        while clock < minutes * 60 and tr.state.step < cfg.train.max_steps:
+            t0 = time.perf_counter()
+            tr.train_step()
+            clock += time.perf_counter() - t0
+            if clock >= next_eval or tr.state.step == cfg.train.max_steps:
+                next_eval += eval_every_s
+                tr.model.eval()
+                psnr = float(np.mean([render_view(tr.model, test, i, scene, 4096)["psnr"]
+                                      for i in range(min(n_views, len(test)))]))
+                curve.append((round(clock, 1), tr.state.step, round(psnr, 2)))
+                for t in targets:
+                    if reached[f"{t:g}"] is None and psnr >= t:
+                        reached[f"{t:g}"] = round(clock, 1)
+    return {"minutes": minutes, "seconds_to_psnr": reached, "curve": curve}
+
+
+def run_bench(as_json: bool = False, quick: bool = False, data: Path | None = None, minutes: float = 10.0) -> dict:
+    from anisdf.benchmarks.encoding import bench_encoding, format_table
+    from anisdf.fields.hash_encoding_fast import load_fast_encoder
+
+    result: dict[str, Any] = {"date": date.today().isoformat(), "machine": platform.machine(),
+                              "cpu_threads": torch.get_num_threads(), "torch": torch.__version__,
+                              "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+    enc = bench_encoding(n_points=1 << 16, repeats=3)
+    result["encoding"] = enc
+    row = enc["settings"][0]
+    result["encoding_fwd_bwd_speedup"] = row.get("speedup", {}).get("fwd+bwd")
+    scene = _scene(data, downscale=2)
+    ref = bench_train_step(scene, "torch")
+    fast_available = load_fast_encoder() is not None
+    fast = bench_train_step(scene, "auto") if fast_available else None
+    result["train_step"] = {"reference": ref, "fast": fast}
+    result["train_samples_per_s"] = (fast or ref)["samples_per_s"]
+    result["train_step_speedup"] = fast["samples_per_s"] / ref["samples_per_s"] if fast else None
+    result["peak_memory_mb"] = (torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available()
+                                else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    if not quick:
+        result["time_to_psnr"] = time_to_psnr(scene, minutes)
+    if as_json:
+        print(json.dumps(result))
+        return result
+    print(format_table(enc))
+    print()
+    print("training step (cpu-quick, samples per second after 20 warm-up steps)")
+    print(f"  reference  {ref['samples_per_s'] / 1e3:8.1f} k/s   {ref['ms_per_step']:7.0f} ms/step")
+    if fast:
+        print(f"  fast       {fast['samples_per_s'] / 1e3:8.1f} k/s   {fast['ms_per_step']:7.0f} ms/step"
+              f"   speedup {result['train_step_speedup']:.2f}x")
+    else:
+        print("  fast       (no compiled kernel on this machine)")
+    print(f"peak memory {result['peak_memory_mb']:.0f} MB")
+    if "time_to_psnr" in result:
+        ttp = result["time_to_psnr"]
+        for k, v in ttp["seconds_to_psnr"].items():
+            print(f"time to {k} dB test PSNR: {'not reached' if v is None else f'{v:.0f} s'} "
+                  f"(within {ttp['minutes']:g} min)")
+    return result
