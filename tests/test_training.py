@@ -95,7 +95,7 @@ def test_nan_loss_stops_with_clear_message_and_keeps_checkpoint(toy_scene, tmp_p
     before = ck.read_bytes()
     with torch.no_grad():
         tr.model.variance.variance.fill_(float("nan"))
-    with pytest.raises(TrainingDiverged, match="not finite.*intact"):
+    with pytest.raises(TrainingDiverged, match="last good checkpoint"):  # caught by the loss or the save guard
         tr.fit(max_steps=5)
     assert ck.read_bytes() == before
     assert checkpoint.load_checkpoint(ck)["state"]["step"] == 2

@@ -25,7 +25,7 @@ def run_demo(out: Path, minutes: float = 4.0, device: str | None = None) -> dict
           max_minutes=minutes, device=device, resume=resume)
     metrics = evaluate(run, gt_mesh=data / "gt_mesh.ply", chamfer_points=200_000, mesh_resolution=256,
                        device=device)
-    renders = render(run, split="test", video=True, max_views=4, device=device)
+    renders = render(run, split="test", video=True, max_views=4, device=device, n_video_frames=36)
     print("\nanisdf demo finished")
     print(f"  test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.3f}, normal MAE "
           f"{metrics.get('normal_mae_deg', float('nan')):.2f} deg, Chamfer {metrics.get('chamfer', float('nan')):.4f}")
