@@ -137,19 +137,19 @@ def render_orbit(model, scene, cfg, path: Path, n_frames: int, downscale: int, d
     up = up / up.norm()
     elev = float(torch.rad2deg(torch.asin((centres / centres.norm(dim=-1, keepdim=True) @ up).mean().clamp(-1, 1))))
     poses = orbit_poses(n_frames, dist, elev, up=up.numpy(), look_at=(0.0, 0.0, 0.0))
-    k = int(np.argmin(np.abs(np.asarray(centres @ up) - 0)))  # any train camera: borrow its intrinsics
-    k = train_idx[k]
-    d = max(int(downscale), 1)
-    h, w = cams.height // d, cams.width // d
-    fx, fy, cx, cy = float(cams.fx[k]) / d, float(cams.fy[k]) / d, float(cams.cx[k]) / d, float(cams.cy[k]) / d
-    ys, xs = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
-    dirs_cam = torch.stack([(xs - cx) / fx, (ys - cy) / fy, torch.ones_like(xs)], -1).reshape(-1, 3)
+    from anisdf.data.cameras import Cameras
+
+    k = train_idx[0]  # borrow the intrinsics of a train camera
+    orbit = Cameras(c2w=torch.as_tensor(np.asarray(poses), dtype=torch.float32),
+                    fx=cams.fx[k].repeat(n_frames), fy=cams.fy[k].repeat(n_frames),
+                    cx=cams.cx[k].repeat(n_frames), cy=cams.cy[k].repeat(n_frames),
+                    width=cams.width, height=cams.height).to(dev)
     frames = []
-    for pose in tqdm(poses, desc="orbit video", unit="frame"):
-        pose = torch.as_tensor(pose, dtype=torch.float32)
-        dirs = torch.nn.functional.normalize(dirs_cam @ pose[:, :3].T, dim=-1).to(dev)
-        origins = pose[:, 3].expand_as(dirs).to(dev)
-        maps = render_rays_to_maps(model, origins, dirs, torch.ones_like(dirs), (h, w), cfg.renderer.eval_chunk_rays)
+    for i in tqdm(range(n_frames), desc="orbit video", unit="frame"):
+        origins, dirs = orbit.image_rays(i, max(int(downscale), 1))
+        hw = dirs.shape[:2]
+        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        maps = render_rays_to_maps(model, origins, dirs, torch.ones_like(dirs), hw, cfg.renderer.eval_chunk_rays)
         fg = maps["opacity"][..., 0:1] > 0.5
         frames.append(np.concatenate([to_uint8(maps["rgb"]), normal_to_image(maps["normal"] * fg)], axis=1))
     return write_video(frames, path)
