@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from anisdf.data import RayBatch, RayDataset, Scene, load_scene
+from anisdf.data.rays import eval_background
 from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import DataError
 
@@ -74,24 +75,33 @@ def test_test_split_image_is_row_major_on_white(rgba_scene: Scene) -> None:
     assert torch.all(black.background == 0.0) and black.rgb.mean() < batch.rgb.mean()
 
 
-def test_opaque_scene_keeps_the_photo(masked_scene: Scene) -> None:
-    ds = RayDataset(masked_scene, "train")
-    batch = ds.sample(1024, torch.Generator().manual_seed(0))
+def test_masks_composite_opaque_photos_like_alpha(masked_scene: Scene) -> None:
+    batch = RayDataset(masked_scene, "train").sample(1024, torch.Generator().manual_seed(0))
     rgb, _ = straight(masked_scene, batch)
-    assert torch.equal(batch.rgb, rgb) and torch.all(batch.background == 0)
     px, py = batch.pixels[:, 0].long(), batch.pixels[:, 1].long()
     assert batch.mask is not None
     assert torch.equal(batch.mask, masked_scene.masks[batch.cam_idx, py, px].float() / 255)
-    # With masks, an explicit background composites the photo on that colour.
-    white = RayDataset(masked_scene, "train", background="white").sample(1024, torch.Generator().manual_seed(0))
-    m = white.mask[:, None]
-    assert torch.allclose(white.rgb, rgb * m + (1 - m), atol=1e-6)
+    m = batch.mask[:, None]
+    assert batch.background.std(dim=0).min() > 0.2  # random colours while training
+    assert torch.allclose(batch.rgb, rgb * m + batch.background * (1 - m), atol=1e-6)
+    white = RayDataset(masked_scene, "test").image(0)[0]
+    assert torch.all(white.background == 1.0)
+    assert eval_background(masked_scene) == "white"
+
+
+def test_photos_without_masks_are_kept_as_photographed(tmp_path: Path) -> None:
+    write_test_scene(tmp_path / "s", "colmap")
+    scene = load_scene(tmp_path / "s")
+    assert eval_background(scene) == "auto"
+    for split in ("train", "test"):
+        batch = RayDataset(scene, split, background=eval_background(scene)).sample(512, torch.Generator())
+        rgb, _ = straight(scene, batch)
+        assert torch.equal(batch.rgb, rgb) and torch.all(batch.background == 0) and batch.mask is None
 
 
 def test_explicit_background_needs_alpha_or_masks(tmp_path: Path) -> None:
     write_test_scene(tmp_path / "s", "colmap")
     scene = load_scene(tmp_path / "s")
-    assert RayDataset(scene, "train").sample(8, torch.Generator()).mask is None
     with pytest.raises(DataError, match="needs RGBA images or object masks"):
         RayDataset(scene, "train", background="white")
 

@@ -65,3 +65,20 @@ def test_chamfer_cli_prints_the_distance_last(tmp_path, capsys):
     assert 0.002 < float(last) < 0.02
     assert main(["chamfer", str(tmp_path / "a.ply"), str(tmp_path / "missing.ply")]) == 2
     assert "missing.ply" in capsys.readouterr().err
+
+
+def test_photos_without_masks_train_validate_render_and_evaluate(tmp_path, capsys):
+    """Opaque photos without masks (instant-ngp, LLFF, COLMAP) have no white background to compose on:
+    validation, render and eval compare them as photographed."""
+    from anisdf.data.testscenes import write_test_scene
+
+    scene = tmp_path / "scene"
+    write_test_scene(scene, "instant-ngp", n_images=8, width=24, height=18, distortion=(0.02, 0.0, 0.0, 0.0))
+    out = tmp_path / "run"
+    assert main(["train", str(scene), "--out", str(out), "--preset", "cpu-quick", "--max-steps", "4",
+                 "--no-progress", *TINY, "train.val_every=4"]) == 0
+    assert list((out / "val").glob("*.png"))
+    assert main(["render", str(out), "--max-views", "1"]) == 0
+    assert main(["eval", str(out), "--mesh-resolution", "32", "--chamfer-points", "2000"]) == 0
+    metrics = json.loads((out / "eval.json").read_text())
+    assert np.isfinite(metrics["psnr"]) and metrics["n_views"] >= 1

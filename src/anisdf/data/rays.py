@@ -1,8 +1,8 @@
 """Ray batches for training and evaluation.
 
-For RGBA scenes the target colour is the straight RGB composited on a background colour,
-``rgb * a + bg * (1 - a)``, and the model renders on the same background (NOTES.md: random colour while
-training, white at test).
+For objects (RGBA images, or opaque photos with object masks) the target colour is the straight RGB
+composited on a background colour, ``rgb * a + bg * (1 - a)``, and the model renders on the same background
+(NOTES.md: random colour while training, white at test).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ class RayBatch:
     directions: Tensor
     """[B,3] ray origins and unit directions in the normalised frame."""
     rgb: Tensor
-    """[B,3] float target colour, already composited on ``background`` for RGBA scenes."""
+    """[B,3] float target colour, already composited on ``background`` for objects (alpha or masks)."""
     background: Tensor
     """[B,3] background colour used (zeros for opaque scenes)."""
     mask: Tensor | None
@@ -90,12 +90,19 @@ def _area_uint8(x: Tensor, size: tuple[int, int]) -> Tensor:
     return small.round().clamp(0, 255).to(torch.uint8)
 
 
+def eval_background(scene: Scene) -> str:
+    """Background for evaluation and pictures: white behind objects (alpha or masks); photos without masks are
+    compared as photographed (the model's learned environment colour fills them)."""
+    return "white" if scene.background == "rgba" or scene.masks is not None else "auto"
+
+
 class RayDataset:
     """Pixels of one split of a :class:`Scene` as rays, with images kept on ``device`` as uint8.
 
-    ``background``: ``auto`` gives RGBA scenes a random colour per ray when ``split == "train"`` and white
-    otherwise, and leaves opaque scenes as photographed. ``white`` / ``black`` / ``random`` force that
-    colour; an opaque scene then needs object masks, which replace the alpha channel for compositing.
+    ``background``: ``auto`` gives objects (RGBA images, or opaque photos with object masks, which then
+    play the alpha channel's part) a random colour per ray when ``split == "train"`` and white otherwise,
+    and leaves opaque photos without masks as photographed. ``white`` / ``black`` / ``random`` force that
+    colour and need alpha or masks.
     ``split`` is a key of ``scene.splits`` or ``"all"``. ``downscale`` (int) reduces the image grid
     (area average), e.g. for fast evaluation.
     """
@@ -127,13 +134,11 @@ class RayDataset:
         self._indices_dev = self.indices.to(self.device)
         self.downscale = int(downscale)
 
-        # Which channel composites the target on a background colour.
-        composite = scene.alpha if scene.background == "rgba" else None
+        # Which channel composites the target on a background colour: alpha, else the object masks.
+        composite = scene.alpha if scene.background == "rgba" else scene.masks
         if background == "auto":
             self.mode = ("random" if split == "train" else "white") if composite is not None else "none"
         else:
-            if composite is None:
-                composite = scene.masks
             if composite is None:
                 raise DataError(scene.root, f"background {background!r} needs RGBA images or object masks")
             self.mode = background

@@ -62,7 +62,7 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
     """
     import numpy as np
 
-    from anisdf.data.rays import RayDataset
+    from anisdf.data.rays import RayDataset, eval_background
     from anisdf.systems.rendering import render_view
     from anisdf.systems.trainer import Trainer
 
@@ -72,7 +72,7 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
     curve: list[tuple[float, int, float]] = []
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
-        test = RayDataset(scene, "test", device=device, background="white")
+        test = RayDataset(scene, "test", device=device, background=eval_background(scene))
         clock, next_eval = 0.0, eval_every_s
         while clock < minutes * 60 and tr.state.step < cfg.train.max_steps:
             t0 = time.perf_counter()

@@ -90,7 +90,7 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     """Render every view of a split with its maps into RUN/renders/<split>/, and optionally an orbit video."""
     from tqdm import tqdm
 
-    from anisdf.data.rays import RayDataset
+    from anisdf.data.rays import RayDataset, eval_background
     from anisdf.export.visualize import depth_to_image, normal_to_image, save_image, scalar_to_image, to_uint8
     from anisdf.systems.rendering import render_view
     from anisdf.systems.trainer import load_run, pick_device
@@ -100,7 +100,7 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     scene = _scene_for_run(run, cfg, ck)
     if not scene.splits.get(split):
         raise AnisdfError(f"split '{split}' is empty for {scene.root}; choose one of {sorted(scene.splits)}")
-    data = RayDataset(scene, split, device=dev, background="white", downscale=downscale)
+    data = RayDataset(scene, split, device=dev, background=eval_background(scene), downscale=downscale)
     n = len(data) if max_views <= 0 else min(max_views, len(data))
     out_dir = run / "renders" / split
     for i in tqdm(range(n), desc=f"render {split}", unit="view"):
@@ -162,7 +162,7 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     writes RUN/eval.json, RUN/eval/ images and a report (protocols: docs/evaluation.md)."""
     from tqdm import tqdm
 
-    from anisdf.data.rays import RayDataset
+    from anisdf.data.rays import RayDataset, eval_background
     from anisdf.eval.metrics import chamfer_distance, load_mesh, normal_mae_deg, psnr, ssim
     from anisdf.eval.report import write_report
     from anisdf.export.visualize import save_image
@@ -176,7 +176,7 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     scene = _scene_for_run(run, cfg, ck)
     if not scene.splits.get(split):
         raise AnisdfError(f"split '{split}' is empty for {scene.root}; choose one of {sorted(scene.splits)}")
-    data = RayDataset(scene, split, device=dev, background="white")
+    data = RayDataset(scene, split, device=dev, background=eval_background(scene))
     ids = scene.splits[split]
     n = len(data) if max_views <= 0 else min(max_views, len(data))
     per_view: list[dict[str, Any]] = []

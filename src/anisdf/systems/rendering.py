@@ -36,12 +36,11 @@ def render_rays_to_maps(model: AniSDFModel, origins: torch.Tensor, dirs: torch.T
 
 def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chunk: int) -> dict:
     """Render view ``i`` of a split on a white background; returns maps, the target and its PSNR."""
-    from anisdf.systems.trainer import psnr_from_mse, targets
+    from anisdf.systems.trainer import psnr_from_mse
 
     batch, hw = data.image(i)
-    target, bg = targets(batch, scene, False, torch.Generator())
-    maps = render_rays_to_maps(model, batch.origins, batch.directions, bg, hw, chunk)
-    gt = target.reshape(*hw, 3).float().cpu().numpy()
+    maps = render_rays_to_maps(model, batch.origins, batch.directions, batch.background, hw, chunk)
+    gt = batch.rgb.reshape(*hw, 3).float().cpu().numpy()
     mse = float(np.mean((np.clip(maps["rgb"], 0, 1) - gt) ** 2))
     return {"maps": maps, "gt": gt, "psnr": psnr_from_mse(mse), "hw": hw}
 

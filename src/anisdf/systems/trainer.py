@@ -20,7 +20,7 @@ import torch
 import yaml
 
 from anisdf.config import Config, config_from_dict
-from anisdf.data.rays import RayBatch, RayDataset
+from anisdf.data.rays import RayDataset, eval_background
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.models.anisdf import AniSDFModel
@@ -53,18 +53,6 @@ def lr_factor(step: int, cfg: Config) -> float:
 def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
     learn_bg = scene.background == "opaque" and scene.masks is None
     return AniSDFModel(cfg, learn_background=learn_bg).to(device)
-
-
-def targets(batch: RayBatch, scene: Scene, train: bool, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Ground truth and background per ray. Opaque photos with masks are treated as objects: the photo is
-    composited on the background through its mask (random colours in training, white otherwise)."""
-    if scene.background == "opaque" and batch.mask is not None:
-        n = batch.rgb.shape[0]
-        bg = (torch.rand(n, 3, generator=gen).to(batch.rgb.device) if train
-              else torch.ones(n, 3, device=batch.rgb.device))
-        m = batch.mask[:, None]
-        return batch.rgb * m + bg * (1 - m), bg
-    return batch.rgb, batch.background
 
 
 @dataclass
@@ -153,11 +141,11 @@ class Trainer:
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
         batch = self.train_data.sample(st.n_rays, self.gen)
-        target, bg = targets(batch, self.scene, True, self.gen)
         use_amp = cfg.train.amp and self.device.type == "cuda"
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
-            out = model.render_rays(batch.origins, batch.directions, bg, train=True, generator=self.gen)
-            terms = model.losses(out, target, batch.mask, self.gen)
+            out = model.render_rays(batch.origins, batch.directions, batch.background, train=True,
+                                    generator=self.gen)
+            terms = model.losses(out, batch.rgb, batch.mask, self.gen)
         loss = terms["total"]
         value = float(loss.detach())
         if not math.isfinite(value) or (st.step > 100 and st.loss_ema > 0
@@ -174,7 +162,7 @@ class Trainer:
         scale = min(rc.samples_per_step / max(n_samples, 1), 4 * rc.samples_per_step / max(n_marched, 1))
         st.n_rays = int(min(max(st.n_rays * scale, rc.min_rays), rc.max_rays))
         st.loss_ema = value if st.loss_ema == 0 else 0.98 * st.loss_ema + 0.02 * value
-        mse = float(torch.mean((out["rgb"].detach() - target) ** 2))
+        mse = float(torch.mean((out["rgb"].detach() - batch.rgb) ** 2))
         st.step += 1
         stats = {k: float(v.detach()) for k, v in terms.items()}
         stats.update(psnr=psnr_from_mse(mse), n_samples=n_samples, n_rays=batch.origins.shape[0],
@@ -186,7 +174,7 @@ class Trainer:
         from anisdf.systems.rendering import render_view, save_panel
 
         split = "test" if self.scene.splits.get("test") else "train"
-        data = RayDataset(self.scene, split, device=self.device, background="white",
+        data = RayDataset(self.scene, split, device=self.device, background=eval_background(self.scene),
                           downscale=self.cfg.train.val_downscale)
         res = render_view(self.model, data, 0, self.scene, self.cfg.renderer.eval_chunk_rays)
         path = self.out / "val" / f"step_{self.state.step:06d}.png"
