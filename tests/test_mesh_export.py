@@ -84,6 +84,30 @@ def test_two_pass_refines_the_surface() -> None:
     assert double.volume > 0
 
 
+def test_sparse_second_pass_matches_the_dense_reference() -> None:
+    # a torus (a hole, thin parts) away from the origin, as an approximate SDF scaled by 0.7
+    c = torch.tensor([0.1, -0.2, 0.05])
+
+    def torus(p: torch.Tensor) -> torch.Tensor:
+        q = p - c
+        ring = torch.sqrt(q[:, 0] ** 2 + q[:, 1] ** 2) - 0.45
+        return 0.7 * (torch.sqrt(ring**2 + q[:, 2] ** 2) - 0.12)
+
+    seen: list[int] = []
+
+    def counted(p: torch.Tensor) -> torch.Tensor:
+        seen.append(p.shape[0])
+        return torus(p)
+
+    dense = extract_mesh(counted, resolution=256, two_pass=True, sparse=False, progress=False)
+    n_dense, seen[:] = sum(seen), []
+    sparse = extract_mesh(counted, resolution=256, two_pass=True, sparse=True, chunk=3000, progress=False)
+    np.testing.assert_array_equal(sparse.vertices, dense.vertices)
+    np.testing.assert_array_equal(sparse.faces, dense.faces)
+    assert max(seen) <= 3000
+    assert sum(seen) < 0.7 * n_dense, (sum(seen), n_dense)  # 0.66 here; ~0.36 at 512 (pass 1 at 128)
+
+
 @pytest.mark.parametrize("chunk", [700, 32 * 32 * 3 + 5])  # pieces of one x-slice; several x-slices
 def test_chunking_does_not_change_the_result(chunk: int) -> None:
     f = sphere_sdf(center=(0.1, 0.0, -0.1), r=0.4)
