@@ -540,39 +540,46 @@ torch::Tensor grad_input(const torch::Tensor& t, int64_t rows, int64_t cols, con
   return out;
 }
 
+// Validated, contiguous inputs shared by the three entry points.
+struct Inputs {
+  std::vector<Level> lv;
+  torch::Tensor x, table;
+  int64_t N, L, F;
+  uint32_t mask;
+};
+
+Inputs prepare(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& levels,
+               int64_t log2_size) {
+  auto lv = make_levels(levels);
+  check_inputs(x, table, lv, log2_size);
+  const int64_t L = static_cast<int64_t>(lv.size());
+  return {std::move(lv), x.contiguous(), table.contiguous(), x.size(0), L, table.size(1),
+          static_cast<uint32_t>((int64_t(1) << log2_size) - 1)};
+}
+
 }  // namespace
 
 // ------------------------------------------------------------------------------------------ bindings
 torch::Tensor encode_forward(torch::Tensor x, torch::Tensor table, torch::Tensor levels, int64_t log2_size) {
-  const auto lv = make_levels(levels);
-  check_inputs(x, table, lv, log2_size);
-  x = x.contiguous();
-  table = table.contiguous();
-  const int64_t N = x.size(0), L = static_cast<int64_t>(lv.size()), F = table.size(1);
-  auto out = torch::empty({N, L * F}, table.options());
-  const uint32_t mask = static_cast<uint32_t>((int64_t(1) << log2_size) - 1);
-  ANISDF_DISPATCH_F(F, forward_impl<kF>(x.data_ptr<float>(), table.data_ptr<float>(), out.data_ptr<float>(), N,
-                                        lv, mask));
+  const auto in = prepare(x, table, levels, log2_size);
+  auto out = torch::empty({in.N, in.L * in.F}, in.table.options());
+  ANISDF_DISPATCH_F(in.F, forward_impl<kF>(in.x.data_ptr<float>(), in.table.data_ptr<float>(),
+                                           out.data_ptr<float>(), in.N, in.lv, in.mask));
   return out;
 }
 
 std::vector<torch::Tensor> encode_backward(torch::Tensor g, torch::Tensor x, torch::Tensor table,
                                            torch::Tensor levels, int64_t log2_size, bool need_table,
                                            bool need_x, int64_t mode) {
-  const auto lv = make_levels(levels);
-  check_inputs(x, table, lv, log2_size);
-  x = x.contiguous();
-  table = table.contiguous();
-  const int64_t N = x.size(0), L = static_cast<int64_t>(lv.size()), F = table.size(1);
-  g = grad_input(g, N, L * F, "grad_output");
-  const uint32_t mask = static_cast<uint32_t>((int64_t(1) << log2_size) - 1);
+  const auto in = prepare(x, table, levels, log2_size);
+  g = grad_input(g, in.N, in.L * in.F, "grad_output");
   torch::Tensor gt, gx;
-  if (need_table) gt = torch::zeros_like(table);
-  if (need_x) gx = torch::zeros({N, 3}, x.options());
-  ANISDF_DISPATCH_F(F, backward_impl<kF>(x.data_ptr<float>(), g.data_ptr<float>(), table.data_ptr<float>(),
-                                         need_table ? gt.data_ptr<float>() : nullptr,
-                                         need_x ? gx.data_ptr<float>() : nullptr, N, lv, mask,
-                                         static_cast<int>(mode)));
+  if (need_table) gt = torch::zeros_like(in.table);
+  if (need_x) gx = torch::zeros({in.N, 3}, in.x.options());
+  ANISDF_DISPATCH_F(in.F, backward_impl<kF>(in.x.data_ptr<float>(), g.data_ptr<float>(),
+                                            in.table.data_ptr<float>(), need_table ? gt.data_ptr<float>() : nullptr,
+                                            need_x ? gx.data_ptr<float>() : nullptr, in.N, in.lv, in.mask,
+                                            static_cast<int>(mode)));
   return {gt, gx};
 }
 
@@ -581,29 +588,25 @@ std::vector<torch::Tensor> encode_double_backward(torch::Tensor g, torch::Tensor
                                                   std::optional<torch::Tensor> ggt, torch::Tensor levels,
                                                   int64_t log2_size, bool need_g, bool need_table,
                                                   bool need_x) {
-  const auto lv = make_levels(levels);
-  check_inputs(x, table, lv, log2_size);
-  x = x.contiguous();
-  table = table.contiguous();
-  const int64_t N = x.size(0), L = static_cast<int64_t>(lv.size()), F = table.size(1);
-  g = grad_input(g, N, L * F, "g");
+  const auto in = prepare(x, table, levels, log2_size);
+  const int64_t N = in.N, F = in.F;
+  g = grad_input(g, N, in.L * F, "g");
   torch::Tensor ggx_t, ggt_t;
   if (ggx.has_value() && ggx->defined()) ggx_t = grad_input(*ggx, N, 3, "grad of grad_x");
-  if (ggt.has_value() && ggt->defined()) ggt_t = grad_input(*ggt, table.size(0), F, "grad of grad_table");
-  const uint32_t mask = static_cast<uint32_t>((int64_t(1) << log2_size) - 1);
+  if (ggt.has_value() && ggt->defined()) ggt_t = grad_input(*ggt, in.table.size(0), F, "grad of grad_table");
   torch::Tensor og, ot, ox;
-  if (need_g) og = torch::empty({N, L * F}, table.options());
-  if (need_table) ot = torch::zeros_like(table);
-  if (need_x) ox = torch::zeros({N, 3}, x.options());
-  DoubleArgs a{x.data_ptr<float>(),
+  if (need_g) og = torch::empty({N, in.L * F}, in.table.options());
+  if (need_table) ot = torch::zeros_like(in.table);
+  if (need_x) ox = torch::zeros({N, 3}, in.x.options());
+  DoubleArgs a{in.x.data_ptr<float>(),
                g.data_ptr<float>(),
-               table.data_ptr<float>(),
+               in.table.data_ptr<float>(),
                ggx_t.defined() ? ggx_t.data_ptr<float>() : nullptr,
                ggt_t.defined() ? ggt_t.data_ptr<float>() : nullptr,
                need_g ? og.data_ptr<float>() : nullptr,
                need_table && ggx_t.defined() ? ot.data_ptr<float>() : nullptr,
                need_x ? ox.data_ptr<float>() : nullptr};
-  if (a.ggx || a.ggt) ANISDF_DISPATCH_F(F, double_impl<kF>(a, N, lv, mask));
+  if (a.ggx || a.ggt) ANISDF_DISPATCH_F(F, double_impl<kF>(a, N, in.lv, in.mask));
   return {og, ot, ox};
 }
 
