@@ -58,7 +58,8 @@ class GeometryConfig:
     fusion: str = "sum"
     """sum (paper, Eq. 5) or mean (authors' release)."""
     normals: str = "analytic"
-    """analytic (autograd) or finite_difference (central differences)."""
+    """analytic (autograd through the network, double backward in training) or finite_difference (4-point
+    tetrahedron, step fd_eps). Measured trade-off: benchmarks/RESULTS.md."""
     fd_eps: float = 0.0
     """Finite-difference step; <= 0 follows the cell size of the finest active level (Neuralangelo)."""
     encoding_backend: str = "auto"
@@ -106,6 +107,11 @@ class RendererConfig:
     min_rays: int = 256
     max_rays: int = 8192
     init_rays: int = 1024
+    background_model: str = "nerf"
+    """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360 scenes) or
+    environment (a colour per direction)."""
+    background_samples: int = 32
+    """Samples per ray of the background NeRF, uniform in disparity."""
     early_stop_eps: float = 1e-3
     """Samples whose transmittance (estimated by a cheap SDF-only pass) is below this are dropped; 0 = off."""
     color_weight_eps: float = 1e-4
@@ -175,6 +181,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "geometry.kind": ("fused", "single"),
     "geometry.fusion": ("sum", "mean"),
     "geometry.normals": ("analytic", "finite_difference"),
+    "renderer.background_model": ("nerf", "environment"),
     "geometry.encoding_backend": ("auto", "torch", "fast"),
     "appearance.kind": ("blend", "pe", "view"),
     "loss.rgb": ("mse", "l1", "mse+l1"),

@@ -9,8 +9,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from anisdf.config import Config
-from anisdf.fields.encodings import sh_encoding
-from anisdf.fields.radiance_field import RadianceField, mlp
+from anisdf.fields.background_field import BackgroundNeRF, EnvironmentBackground
+from anisdf.fields.radiance_field import RadianceField
 from anisdf.fields.sdf_field import SDFField
 from anisdf.model_components import losses as L
 from anisdf.model_components.neus_renderer import (
@@ -24,20 +24,6 @@ from anisdf.model_components.occupancy_grid import OccupancyGrid
 from anisdf.model_components.ray_marching import march
 
 
-class EnvironmentBackground(nn.Module):
-    """Colour seen along rays that leave the bounding sphere, as a function of direction only.
-
-    Used for opaque photos without masks, where the background is part of the image.
-    """
-
-    def __init__(self, hidden: int = 64) -> None:
-        super().__init__()
-        self.net = mlp(16, hidden, 1, 3)
-
-    def forward(self, dirs: Tensor) -> Tensor:
-        return torch.sigmoid(self.net(sh_encoding(dirs, 4)))
-
-
 class AniSDFModel(nn.Module):
     def __init__(self, cfg: Config, learn_background: bool = False) -> None:
         super().__init__()
@@ -48,7 +34,12 @@ class AniSDFModel(nn.Module):
         self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim)
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
         self.grid = OccupancyGrid(r.grid_resolution, r.radius)
-        self.background = EnvironmentBackground() if learn_background else None
+        # opaque photos without masks: what lies beyond the sphere is learned too
+        self.background: nn.Module | None = None
+        if learn_background:
+            self.background = (BackgroundNeRF(r.radius, r.background_samples,
+                                              backend=cfg.geometry.encoding_backend)
+                               if r.background_model == "nerf" else EnvironmentBackground())
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
 
     # ----------------------------------------------------------------------------------------- schedule
@@ -107,7 +98,9 @@ class AniSDFModel(nn.Module):
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
         opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)
-        if self.background is not None:
+        if isinstance(self.background, BackgroundNeRF):
+            background = self.background(origins, dirs, generator if train else None)["rgb"]
+        elif self.background is not None:
             background = self.background(dirs)
         for key, val in col_vis.items():
             out[key] = composite(val, w_vis, r_vis, n_rays)
