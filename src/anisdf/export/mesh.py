@@ -33,6 +33,20 @@ def _grid_axes(lo: np.ndarray, hi: np.ndarray, resolution: int) -> tuple[np.ndar
     return np.array([step, step, step]), counts
 
 
+def _query(sdf_fn: Callable[[torch.Tensor], torch.Tensor], pts: torch.Tensor) -> torch.Tensor:
+    val = sdf_fn(pts).reshape(-1)
+    if val.shape[0] != pts.shape[0]:
+        raise ValueError(f"sdf_fn returned {val.shape[0]} values for {pts.shape[0]} points")
+    return val
+
+
+def _check_finite(vol: np.ndarray) -> np.ndarray:
+    if not np.all(np.isfinite(vol)):
+        bad = int((~np.isfinite(vol)).sum())
+        raise AnisdfError(f"mesh extraction: the SDF is not finite at {bad} of {vol.size} grid points")
+    return vol
+
+
 @torch.no_grad()
 def _eval_grid(
     sdf_fn: Callable[[torch.Tensor], torch.Tensor],
@@ -63,15 +77,10 @@ def _eval_grid(
         k = x1 - x0
         xs = axes[0][x0:x1].repeat_interleave(e - s)[:, None]
         pts = torch.cat([xs, yz[s:e].repeat(k, 1)], dim=-1)
-        val = sdf_fn(pts).reshape(-1)
-        if val.shape[0] != pts.shape[0]:
-            raise ValueError(f"sdf_fn returned {val.shape[0]} values for {pts.shape[0]} points")
+        val = _query(sdf_fn, pts)
         out[x0 * plane + s : (x1 - 1) * plane + e] = val.float().cpu().numpy()
     vol = out.reshape(nx, ny, nz)
-    if not np.all(np.isfinite(vol)):
-        bad = int((~np.isfinite(vol)).sum())
-        raise AnisdfError(f"mesh extraction: the SDF is not finite at {bad} of {vol.size} grid points")
-    return vol
+    return _check_finite(vol)
 
 
 def _crossing_cells(vol: np.ndarray) -> np.ndarray:
@@ -157,16 +166,11 @@ def _eval_grid_near(
     for b0 in tqdm(range(0, len(blocks), per), desc=desc, disable=not progress, leave=False, unit="chunk"):
         idx = (blocks[b0 : b0 + per, None, :] * block + offs[None]).reshape(-1, 3)
         pts = lo_t + idx.to(device).float() * step_t
-        val = sdf_fn(pts).reshape(-1)
-        if val.shape[0] != pts.shape[0]:
-            raise ValueError(f"sdf_fn returned {val.shape[0]} values for {pts.shape[0]} points")
+        val = _query(sdf_fn, pts)
         i = idx.numpy()
         vol[i[:, 0], i[:, 1], i[:, 2]] = val.float().cpu().numpy()
     vol = np.ascontiguousarray(vol[: counts[0], : counts[1], : counts[2]])
-    if not np.all(np.isfinite(vol)):
-        bad = int((~np.isfinite(vol)).sum())
-        raise AnisdfError(f"mesh extraction: the SDF is not finite at {bad} of {vol.size} grid points")
-    return vol
+    return _check_finite(vol)
 
 
 def extract_mesh(

@@ -15,6 +15,7 @@ from torch import Tensor, nn
 from anisdf.fields.encodings import sh_encoding
 from anisdf.fields.hash_encoding import GridSpec, HashGrid
 from anisdf.fields.radiance_field import mlp
+from anisdf.model_components.ray_marching import sphere_intersect
 
 
 def contract(x: Tensor) -> Tensor:
@@ -37,10 +38,8 @@ class EnvironmentBackground(nn.Module):
 
 def exit_distance(origins: Tensor, dirs: Tensor, radius: float) -> Tensor:
     """Where each ray leaves the sphere of ``radius``; for rays that miss it, the point closest to the centre."""
-    b = (origins * dirs).sum(-1)
-    c = (origins * origins).sum(-1) - radius * radius
-    disc = b * b - c
-    return torch.where(disc > 0, -b + disc.clamp_min(0).sqrt(), (-b).clamp_min(0.0))
+    _, far = sphere_intersect(origins, dirs, radius)
+    return torch.where(far > 0, far, -(origins * dirs).sum(-1).clamp_max(0.0))
 
 
 class BackgroundNeRF(nn.Module):
