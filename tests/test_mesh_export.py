@@ -255,7 +255,7 @@ def test_save_image_and_hstack(tmp_path: Path) -> None:
     a = np.zeros((20, 30, 3), dtype=np.float32)
     b = np.full((10, 15), 200, dtype=np.uint8)
     c = np.zeros((20, 10, 4), dtype=np.uint8)  # fully transparent -> white
-    panel = hstack_labeled([a, b, c], ["rgb", "gray", "alpha"], gap=4, label_height=16)
+    panel = hstack_labeled([a, b, c], ["rgb", "gray", "alpha"], gap=4, label_height=16, min_width=0)
     assert panel.shape == (36, 30 + 15 + 10 + 8, 3) and panel.dtype == np.uint8
     strip = panel[:16, :30]
     assert (strip < 128).any() and (strip == 255).mean() > 0.5  # a label is drawn on white
@@ -265,6 +265,10 @@ def test_save_image_and_hstack(tmp_path: Path) -> None:
     path = save_image(tmp_path / "out" / "panel.png", panel)
     np.testing.assert_array_equal(iio.imread(path), panel)
     assert _no_temp_files(path.parent)
+    # small panels are enlarged by a whole factor (nearest pixel) until the widest reaches min_width
+    big = hstack_labeled([a, b, c], ["rgb", "gray", "alpha"], gap=4, label_height=16, min_width=60)
+    assert big.shape == (16 + 40, 60 + 30 + 20 + 8, 3)
+    assert np.all(big[16:36, 64:94] == 200)
     with pytest.raises(ValueError):
         hstack_labeled([a, b], ["only one"])
 

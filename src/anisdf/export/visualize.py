@@ -162,12 +162,14 @@ def save_image(path: str | Path, array: ArrayLike) -> Path:
 
 
 def hstack_labeled(
-    images: Sequence[ArrayLike], labels: Sequence[str] | None = None, gap: int = 4, label_height: int = 16
+    images: Sequence[ArrayLike], labels: Sequence[str] | None = None, gap: int = 4, label_height: int = 16,
+    min_width: int = 128,
 ) -> np.ndarray:
     """Panels side by side (uint8 RGB) with a white strip holding each panel's label above it.
 
     Images may differ in size (shorter ones are padded with white at the bottom); grayscale images are
-    repeated to RGB, RGBA ones composited on white.
+    repeated to RGB, RGBA ones composited on white. Panels narrower than ``min_width`` are enlarged by a whole
+    factor (nearest pixel), so that small validation renders stay legible and their labels do not overlap.
     """
     if not images:
         raise ValueError("hstack_labeled needs at least one image")
@@ -175,6 +177,9 @@ def hstack_labeled(
     if len(labels) != len(images):
         raise ValueError(f"{len(images)} images but {len(labels)} labels")
     panels = [to_rgb_uint8(im) for im in images]
+    factor = max(1, -(-min_width // max(p.shape[1] for p in panels)))
+    if factor > 1:
+        panels = [p.repeat(factor, axis=0).repeat(factor, axis=1) for p in panels]
     top = label_height if any(labels) else 0
     h = max(p.shape[0] for p in panels) + top
     w = sum(p.shape[1] for p in panels) + gap * (len(panels) - 1)
