@@ -1,11 +1,16 @@
-"""The compiled CPU hash-grid kernel computes the reference encoding, its gradients and the eikonal double
-backward; without the kernel everything falls back to the reference."""
+"""The fast hash-grid kernels (compiled C++ on CPU, Triton for CUDA) compute the reference encoding, its
+gradients and the eikonal double backward; without a kernel everything falls back to the reference.
+
+Without a GPU the Triton kernels run in Triton's interpreter (``TRITON_INTERPRET=1``) on CPU tensors: the same
+kernel source and arithmetic as on CUDA, so these tests check its math in CI; on a CUDA machine they run compiled.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
 
 import pytest
 import torch
@@ -26,6 +31,36 @@ def kernel() -> object:
         print(f"compiled hash-grid kernel unavailable: {reason}")
         pytest.skip(f"compiled hash-grid kernel unavailable: {reason}")
     return mod
+
+
+@pytest.fixture(scope="module")
+def triton_ops() -> object:
+    """The Triton kernels, compiled for the GPU if there is one, else interpreted on the CPU (see conftest.py)."""
+    pytest.importorskip("triton")
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    assert device == "cuda" or os.environ.get("TRITON_INTERPRET") == "1"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delenv("ANISDF_NO_KERNEL", raising=False)
+        mod = hef.triton_module(device)
+    assert mod is not None, f"Triton kernels unusable: {hef.triton_info(device)['error']}"
+    return mod
+
+
+def _triton_encode(ops: object) -> Callable:
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    def encode(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
+        return hef._apply(x.to(device), table.to(device), spec, ops).cpu()
+    return encode
+
+
+@pytest.fixture(params=["cpu", "triton"])
+def fast(request) -> Callable:
+    """An encode function ``(x, table, spec)`` on CPU tensors, by each fast backend."""
+    if request.param == "cpu":
+        request.getfixturevalue("kernel")
+        return hef.fast_hash_encode
+    return _triton_encode(request.getfixturevalue("triton_ops"))
 
 
 @contextlib.contextmanager
@@ -75,7 +110,7 @@ def _encode_and_grads(encode, x: torch.Tensor, table: torch.Tensor, spec: GridSp
     (GridSpec(), 2000, 0.0, 1.0),
     (GridSpec(n_levels=10), 1500, 0.0, 1.0),
 ])
-def test_values_and_gradients_match_reference(kernel, spec: GridSpec, n: int, lo: float, hi: float) -> None:
+def test_values_and_gradients_match_reference(fast, spec: GridSpec, n: int, lo: float, hi: float) -> None:
     gen = torch.Generator().manual_seed(n + spec.n_levels)
     x = _points(n, spec, gen, lo, hi)
     table = torch.randn(spec.n_params, spec.features_per_level, generator=gen)
@@ -83,8 +118,8 @@ def test_values_and_gradients_match_reference(kernel, spec: GridSpec, n: int, lo
     assert any(spec.hashed) and not all(spec.hashed)
     with _one_thread():
         ref = _encode_and_grads(hash_encode_reference, x, table, spec, w)
-    fast = _encode_and_grads(hef.fast_hash_encode, x, table, spec, w)
-    for name, a, b in zip(("values", "grad table", "grad x"), fast, ref, strict=True):
+    got = _encode_and_grads(fast, x, table, spec, w)
+    for name, a, b in zip(("values", "grad table", "grad x"), got, ref, strict=True):
         assert a.shape == b.shape, name
         _assert_close(a, b)
 
@@ -103,16 +138,16 @@ def _eikonal_grads(encode, x: torch.Tensor, table: torch.Tensor, spec: GridSpec)
 
 
 @pytest.mark.parametrize("spec", [SMALL, GridSpec()])
-def test_eikonal_double_backward_matches_reference(kernel, spec: GridSpec) -> None:
+def test_eikonal_double_backward_matches_reference(fast, spec: GridSpec) -> None:
     gen = torch.Generator().manual_seed(7)
     x = _points(2000, spec, gen)
     table = 0.5 * torch.randn(spec.n_params, spec.features_per_level, generator=gen)
     with _one_thread():
         ref = _eikonal_grads(hash_encode_reference, x, table, spec)
-    fast = _eikonal_grads(hef.fast_hash_encode, x, table, spec)
+    got = _eikonal_grads(fast, x, table, spec)
     # The table gradient includes the part through d enc / dx; x.grad includes the second derivative of the
     # trilinear weights (which torch-ngp omits), so it matches too.
-    for name, a, b in zip(("normal", "grad table", "grad x", "grad mlp"), fast, ref, strict=True):
+    for name, a, b in zip(("normal", "grad table", "grad x", "grad mlp"), got, ref, strict=True):
         assert float(b.abs().max()) > 0, name
         _assert_close(a, b, rel=5e-5)
 
@@ -129,7 +164,7 @@ def _through_table_gradient(encode, x, table, spec, w, u, with_x: bool) -> list[
 
 
 @pytest.mark.parametrize("with_x", [False, True])
-def test_differentiating_the_table_gradient_matches_reference(kernel, with_x: bool) -> None:
+def test_differentiating_the_table_gradient_matches_reference(fast, with_x: bool) -> None:
     gen = torch.Generator().manual_seed(5)
     x = _points(1500, SMALL, gen)
     table = torch.randn(SMALL.n_params, 2, generator=gen)
@@ -137,15 +172,17 @@ def test_differentiating_the_table_gradient_matches_reference(kernel, with_x: bo
     u = torch.randn(SMALL.n_params, 2, generator=gen)
     with _one_thread():
         ref = _through_table_gradient(hash_encode_reference, x, table, SMALL, w, u, with_x)
-    fast = _through_table_gradient(hef.fast_hash_encode, x, table, SMALL, w, u, with_x)
-    for a, b in zip(fast, ref, strict=True):
+    got = _through_table_gradient(fast, x, table, SMALL, w, u, with_x)
+    for a, b in zip(got, ref, strict=True):
         assert float(b.abs().max()) > 0
         _assert_close(a, b, rel=5e-5)
 
 
-def test_table_gradient_is_skipped_when_only_normals_are_asked(kernel, monkeypatch) -> None:
+@pytest.mark.parametrize("backend", ["cpu", "triton"])
+def test_table_gradient_is_skipped_when_only_normals_are_asked(request, backend: str) -> None:
+    real = request.getfixturevalue("kernel" if backend == "cpu" else "triton_ops")
+    device = "cuda" if backend == "triton" and torch.cuda.is_available() else "cpu"
     calls: list[tuple[bool, bool]] = []
-    real = hef.kernel_module()
 
     class Spy:
         def __getattr__(self, name: str):
@@ -158,10 +195,9 @@ def test_table_gradient_is_skipped_when_only_normals_are_asked(kernel, monkeypat
                 return fn(*args, **kwargs)
             return wrapped
 
-    monkeypatch.setitem(hef._state, "module", Spy())
-    x = torch.rand(500, 3, requires_grad=True)
-    table = torch.nn.Parameter(torch.randn(SMALL.n_params, 2))
-    enc = hef.fast_hash_encode(x, table, SMALL)
+    x = torch.rand(500, 3, device=device, requires_grad=True)
+    table = torch.nn.Parameter(torch.randn(SMALL.n_params, 2, device=device))
+    enc = hef._apply(x, table, SMALL, Spy())
     (n,) = torch.autograd.grad(enc.pow(2).sum(), x, create_graph=True)
     assert calls == [(False, True)]  # (need_table, need_x)
     n.pow(2).sum().backward()
@@ -200,13 +236,23 @@ def test_unsupported_inputs_use_the_reference(kernel) -> None:
         hef.fast_hash_encode(x, t[:-1], SMALL)
 
 
-def test_hash_grid_module_uses_the_kernel(kernel) -> None:
+def test_hash_grid_module_uses_the_kernel(kernel, monkeypatch) -> None:
     torch.manual_seed(0)
     grid = HashGrid(SMALL, backend="fast", init_scale=0.1)
-    assert grid._fast is not None
+    used: list[object] = []
+    real_apply = hef._apply
+
+    def spy(x, table, spec, ops):
+        used.append(ops)
+        return real_apply(x, table, spec, ops)
+
+    monkeypatch.setattr(hef, "_apply", spy)
     x = torch.rand(300, 3) * 1.2 - 0.1
     expected = hash_encode_reference(x.clamp(0.0, 1.0), grid.table, SMALL)
     _assert_close(grid(x).detach(), expected.detach())
+    assert used == [kernel]
+    with pytest.raises(ValueError, match="backend must be"):
+        HashGrid(SMALL, backend="tcnn")
 
 
 def test_no_kernel_env_falls_back(monkeypatch) -> None:
@@ -214,10 +260,12 @@ def test_no_kernel_env_falls_back(monkeypatch) -> None:
     assert hef.load_fast_encoder() is None
     with pytest.raises(AnisdfError, match="ANISDF_NO_KERNEL"):
         hef.load_fast_encoder(required=True)
+    assert hef.fast_backend("cpu") is None and hef.triton_module("cpu") is None
     grid = HashGrid(SMALL, backend="auto", init_scale=0.1)
-    assert grid._fast is None
     x = torch.rand(100, 3)
     assert torch.equal(grid(x), hash_encode_reference(x, grid.table, SMALL))
+    with pytest.raises(AnisdfError, match="ANISDF_NO_KERNEL"):
+        HashGrid(SMALL, backend="fast")(x)
 
 
 def test_build_failure_warns_once_and_falls_back(monkeypatch, caplog) -> None:
@@ -242,3 +290,44 @@ def test_build_failure_warns_once_and_falls_back(monkeypatch, caplog) -> None:
     x = torch.rand(40, 3)
     t = torch.randn(SMALL.n_params, 2)
     assert torch.equal(hef.fast_hash_encode(x, t, SMALL), hash_encode_reference(x, t, SMALL))
+
+
+def test_triton_failure_warns_once_and_falls_back(monkeypatch, caplog) -> None:
+    """A GPU whose Triton kernels cannot compile (or give a wrong answer) trains on the reference, saying so once."""
+    monkeypatch.delenv("ANISDF_NO_KERNEL", raising=False)
+    monkeypatch.setattr(hef, "_triton_state", {})
+
+    def broken_check(mod, device):
+        raise RuntimeError("self-check failed: values differ from the reference by 0.5 (relative)\nmore")
+
+    monkeypatch.setattr(hef, "_self_check", broken_check)
+    with caplog.at_level(logging.WARNING, logger=hef.__name__):
+        assert hef.triton_module("cpu") is None
+        assert hef.triton_module("cpu") is None
+        with pytest.raises(AnisdfError, match="no fast hash-grid kernel for cuda:3"):
+            hef.load_fast_encoder(required=True, device="cuda:3")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 2  # one per device, never again for the same one
+    assert all("falling back to the PyTorch reference" in m and "\n" not in m for m in warnings)
+    assert "self-check failed" in warnings[0]
+
+
+def test_triton_self_check_catches_a_wrong_kernel(triton_ops) -> None:
+    """The check that guards every new GPU rejects kernels that are off, here by a wrong table gradient."""
+
+    class Wrong:
+        def __getattr__(self, name: str):
+            return getattr(triton_ops, name)
+
+        def encode_backward(self, *args, **kwargs):
+            gt, gx = triton_ops.encode_backward(*args, **kwargs)
+            return [None if gt is None else gt * 1.01, gx]
+
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    # The first use may come from a render (no_grad) or a mixed-precision training step (autocast).
+    with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
+        hef._self_check(triton_ops, device)
+    with torch.inference_mode():
+        hef._self_check(triton_ops, device)
+    with pytest.raises(RuntimeError, match="table gradient differ"):
+        hef._self_check(Wrong(), device)

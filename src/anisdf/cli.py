@@ -89,7 +89,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from anisdf.systems.bench import run_bench
 
     run_bench(as_json=args.json, quick=args.quick, data=Path(args.data) if args.data else None,
-              minutes=args.minutes)
+              minutes=args.minutes, device=args.device, preset=args.preset)
     return 0
 
 
@@ -159,6 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quick", action="store_true", help="skip the time-to-PSNR run")
     s.add_argument("--data", default=None, help="scene for time-to-PSNR (default ../shared/data/bunny_plastic)")
     s.add_argument("--minutes", type=float, default=10.0)
+    s.add_argument("--device", default="auto", help="auto (CUDA if available) | cpu | cuda[:N]")
+    s.add_argument("--preset", default="cpu-quick", help="configuration of the training-step and time-to-PSNR runs")
     s.set_defaults(fn=cmd_bench)
     return p
 

@@ -1,4 +1,4 @@
-"""Hash-grid encoding speed: the PyTorch reference against the compiled CPU kernel.
+"""Hash-grid encoding speed: the PyTorch reference against the fast kernel (compiled C++ on CPU, Triton on CUDA).
 
 Times, per grid setting, at the same points and table:
 
@@ -10,7 +10,8 @@ Times, per grid setting, at the same points and table:
 
 Lookups are counted as ``N * L * 8`` table rows per pass over the points. The "floor" is what a chain of
 dependent random reads at about 15 ns each would give (1 / 15 ns per thread); the kernel beats it because
-the reads of many points are independent and mostly hit the cache (one level's slice at a time).
+the reads of many points are independent and mostly hit the cache (one level's slice at a time). On CUDA
+(``--device cuda``) the floor and the per-thread figures are not printed; timings synchronise the device.
 
 Run ``python benchmarks/bench_encoding.py`` (or ``python -m anisdf.benchmarks.encoding``)
 for a table, ``--json`` for one JSON object. The CLI calls
@@ -34,7 +35,7 @@ import torch
 from torch import Tensor
 
 from anisdf.fields.hash_encoding import GridSpec, hash_encode_reference
-from anisdf.fields.hash_encoding_fast import kernel_info, load_fast_encoder
+from anisdf.fields.hash_encoding_fast import kernel_info, load_fast_encoder, triton_info
 
 FLOOR_NS_PER_LOOKUP = 15.0
 
@@ -45,13 +46,20 @@ DEFAULT_SETTINGS: dict[str, GridSpec] = {
 }
 
 
-def _time(fn: Callable[[], Any], repeats: int) -> tuple[float, float]:
+def _sync(device: torch.device | None) -> None:
+    if device is not None and device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _time(fn: Callable[[], Any], repeats: int, device: torch.device | None = None) -> tuple[float, float]:
     """(best, median) wall seconds over ``repeats`` runs after one warm-up run."""
     fn()
+    _sync(device)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
+        _sync(device)
         times.append(time.perf_counter() - t0)
     return min(times), statistics.median(times)
 
@@ -80,8 +88,8 @@ def _cases(encode: Callable[[Tensor, Tensor, GridSpec], Tensor], x: Tensor, tabl
 
 def bench_encoding(n_points: int = 1 << 16, repeats: int = 3, *, reference: bool = True,
                    settings: dict[str, GridSpec] | None = None, seed: int = 0,
-                   threads: int | None = None) -> dict[str, Any]:
-    """Time reference and compiled encodings; returns a JSON-ready dict (see the module docstring).
+                   threads: int | None = None, device: str | torch.device = "cpu") -> dict[str, Any]:
+    """Time reference and fast encodings on ``device``; returns a JSON-ready dict (see the module docstring).
 
     ``threads`` sets torch's thread count (used by both) for the run; default: leave it as it is.
     """
@@ -89,33 +97,35 @@ def bench_encoding(n_points: int = 1 << 16, repeats: int = 3, *, reference: bool
     if threads is not None:
         torch.set_num_threads(threads)
     try:
-        return _bench(n_points, repeats, reference, DEFAULT_SETTINGS if settings is None else settings, seed)
+        return _bench(n_points, repeats, reference, DEFAULT_SETTINGS if settings is None else settings, seed,
+                      torch.device(device))
     finally:
         torch.set_num_threads(previous)
 
 
 def _bench(n_points: int, repeats: int, reference: bool, settings: dict[str, GridSpec],
-           seed: int) -> dict[str, Any]:
-    fast = load_fast_encoder()
+           seed: int, device: torch.device) -> dict[str, Any]:
+    fast = load_fast_encoder(device=device)
     threads = torch.get_num_threads()
     gen = torch.Generator().manual_seed(seed)
     out: dict[str, Any] = {
         "n_points": n_points,
         "repeats": repeats,
         "threads": threads,
+        "device": str(device) if device.type == "cpu" else torch.cuda.get_device_name(device),
         "loadavg_before": list(os.getloadavg()),
-        "kernel": kernel_info(),
+        "kernel": kernel_info() if device.type == "cpu" else triton_info(device),
         "kernel_available": fast is not None,
         "floor_ns_per_lookup": FLOOR_NS_PER_LOOKUP,
         "settings": [],
     }
     for label, spec in settings.items():
-        x = torch.rand(n_points, 3, generator=gen)
-        table = (torch.rand(spec.n_params, spec.features_per_level, generator=gen) - 0.5) * 0.2
-        g = torch.randn(n_points, spec.output_dim, generator=gen)
+        x = torch.rand(n_points, 3, generator=gen).to(device)
+        table = ((torch.rand(spec.n_params, spec.features_per_level, generator=gen) - 0.5) * 0.2).to(device)
+        g = torch.randn(n_points, spec.output_dim, generator=gen).to(device)
         torch.manual_seed(seed)
         mlp = torch.nn.Sequential(torch.nn.Linear(spec.output_dim, 64), torch.nn.Softplus(beta=100),
-                                  torch.nn.Linear(64, 1))
+                                  torch.nn.Linear(64, 1)).to(device)
         lookups = n_points * spec.n_levels * 8
         row: dict[str, Any] = {"label": label, "spec": asdict(spec), "lookups_per_pass": lookups}
         impls: dict[str, Callable[[Tensor, Tensor, GridSpec], Tensor]] = {}
@@ -126,7 +136,7 @@ def _bench(n_points: int, repeats: int, reference: bool, settings: dict[str, Gri
         for name, encode in impls.items():
             res: dict[str, Any] = {}
             for case, fn in _cases(encode, x, table, spec, g, mlp).items():
-                best, median = _time(fn, repeats)
+                best, median = _time(fn, repeats, device)
                 res[case] = {"best_s": best, "median_s": median, "points_per_s": n_points / best}
             res["fwd"]["lookups_per_s"] = lookups / res["fwd"]["best_s"]
             res["fwd"]["ns_per_lookup_per_thread"] = res["fwd"]["best_s"] * threads / lookups * 1e9
@@ -146,7 +156,9 @@ def _bench(n_points: int, repeats: int, reference: bool, settings: dict[str, Gri
 def format_table(result: dict[str, Any]) -> str:
     """A plain-text table of :func:`bench_encoding`'s result."""
     n = result["n_points"]
-    lines = [f"hash-grid encoding, N = {n} points (2^{math.log2(n):.1f}), {result['threads']} threads, "
+    on_cpu = result.get("device", "cpu") == "cpu"
+    where = f"{result['threads']} threads" if on_cpu else result["device"]
+    lines = [f"hash-grid encoding, N = {n} points (2^{math.log2(n):.1f}), {where}, "
              f"best of {result['repeats']}; load average {result['loadavg_before'][0]:.1f}"]
     info = result["kernel"]
     if result["kernel_available"]:
@@ -164,13 +176,15 @@ def format_table(result: dict[str, Any]) -> str:
             r = row[impl]
             lines.append(f"{row['label']:32s} {impl:9s} {r['fwd']['points_per_s']:11.3g} "
                          f"{r['fwd+bwd']['points_per_s']:11.3g} {r['eikonal']['points_per_s']:11.3g} "
-                         f"{r['fwd']['lookups_per_s']:11.3g} {r['fwd']['ns_per_lookup_per_thread']:13.2f}")
+                         f"{r['fwd']['lookups_per_s']:11.3g} "
+                         + (f"{r['fwd']['ns_per_lookup_per_thread']:13.2f}" if on_cpu else f"{'-':>13s}"))
         if "speedup" in row:
             s = row["speedup"]
             lines.append(f"{'':32s} {'speedup':9s} {s['fwd']:10.1f}x {s['fwd+bwd']:10.1f}x {s['eikonal']:10.1f}x"
                          f"   (max |diff| {row['max_abs_diff_fwd']:.1e})")
-    lines.append(f"random-read floor: {result['floor_lookups_per_s']:.3g} lookups/s "
-                 f"({result['floor_ns_per_lookup']:.0f} ns per lookup per thread)")
+    if on_cpu:
+        lines.append(f"random-read floor: {result['floor_lookups_per_s']:.3g} lookups/s "
+                     f"({result['floor_ns_per_lookup']:.0f} ns per lookup per thread)")
     return "\n".join(lines)
 
 
@@ -180,9 +194,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--no-reference", action="store_true", help="time only the compiled kernel")
+    parser.add_argument("--device", default="cpu", help="cpu (compiled C++ kernel) or cuda (Triton kernels)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = parser.parse_args(argv)
-    result = bench_encoding(args.points, args.repeats, reference=not args.no_reference, threads=args.threads)
+    result = bench_encoding(args.points, args.repeats, reference=not args.no_reference, threads=args.threads,
+                            device=args.device)
     print(json.dumps(result) if args.json else format_table(result))
     return 0
 

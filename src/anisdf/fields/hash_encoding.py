@@ -4,12 +4,13 @@ Level ``l`` has resolution ``R_l = floor(base * s**l)`` and ``(R_l + 1)**3`` gri
 whose vertices fit in ``2**log2_hashmap_size`` entries are indexed densely; finer levels use the spatial
 hash ``(x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod T``. Features of the 8 corners are blended
 trilinearly. Everything is differentiable with autograd, including the double backward that an
-eikonal loss on analytic normals needs. A faster kernel (``anisdf.fields.hash_encoding_fast``) implements
-the same :func:`hash_encode` contract and is tested against this file.
+eikonal loss on analytic normals needs. The fast kernels (``anisdf.fields.hash_encoding_fast``: C++ on CPU,
+Triton on CUDA) implement the same contract and are tested against this file.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -128,25 +129,28 @@ EncodeFn = Callable[[Tensor, Tensor, GridSpec], Tensor]
 
 
 class HashGrid(nn.Module):
-    """A learnable hash grid. ``backend`` picks ``torch`` (reference) or ``fast`` (compiled kernel)."""
+    """A learnable hash grid.
+
+    ``backend``: ``torch`` (this reference), ``fast`` (the device's fast kernel, an error where there is none) or
+    ``auto`` (the fast kernel where there is one: compiled C++ on CPU, Triton on CUDA; else the reference).
+    """
 
     def __init__(self, spec: GridSpec, backend: str = "auto", init_scale: float = 1e-4) -> None:
         super().__init__()
+        if backend not in ("auto", "fast", "torch"):
+            raise ValueError(f"hash grid backend must be auto, fast or torch, not {backend!r}")
         self.spec = spec
         self.table = nn.Parameter(torch.empty(spec.n_params, spec.features_per_level).uniform_(-init_scale, init_scale))
         self.backend = backend
-        self._fast: EncodeFn | None = None
-        if backend in ("auto", "fast"):
-            from anisdf.fields.hash_encoding_fast import load_fast_encoder
+        self._encode: EncodeFn = hash_encode_reference
+        if backend != "torch":
+            from anisdf.fields.hash_encoding_fast import fast_hash_encode
 
-            self._fast = load_fast_encoder(required=backend == "fast")
+            self._encode = functools.partial(fast_hash_encode, required=backend == "fast")
 
     @property
     def output_dim(self) -> int:
         return self.spec.output_dim
 
     def forward(self, x: Tensor) -> Tensor:
-        x = x.clamp(0.0, 1.0)
-        if self._fast is not None:
-            return self._fast(x, self.table, self.spec)
-        return hash_encode_reference(x, self.table, self.spec)
+        return self._encode(x.clamp(0.0, 1.0), self.table, self.spec)

@@ -1,21 +1,23 @@
-"""Compiled CPU hash-grid encoding: the same function as :func:`hash_encode_reference`, much faster.
+"""Fast hash-grid encodings: the same function as :func:`hash_encode_reference`, much faster.
 
-Measured on 2 shared cores (``benchmarks/bench_encoding.py``, 2^16-2^18 points, 10-16 levels, log2 T 17-19):
-forward 14-30x, forward + backward 8-18x, an eikonal step 6-13x the reference's speed.
+* CPU: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``), built with ``torch.utils.cpp_extension.load``
+  on first use, once per process, into torch's extension cache (``~/.cache/torch_extensions/...``) or under
+  ``$ANISDF_KERNEL_DIR``. Measured on 2 shared cores (``benchmarks/bench_encoding.py``, 2^16-2^18 points,
+  10-16 levels, log2 T 17-19): forward 14-30x, forward + backward 8-18x, an eikonal step 6-13x the reference.
+* CUDA: Triton kernels (:mod:`anisdf.fields.hash_encoding_triton`), compiled by Triton on first use and checked
+  once per device against the reference on a few points before they are trusted.
 
-The C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``) is built with ``torch.utils.cpp_extension.load``
-on first use, once per process, into torch's extension cache (``~/.cache/torch_extensions/...``) or under
-``$ANISDF_KERNEL_DIR``. ``ANISDF_NO_KERNEL=1`` disables it. If it cannot be built, :func:`load_fast_encoder`
-logs one warning and returns ``None`` (callers then use the reference), or raises :class:`AnisdfError` when
-``required``.
+``ANISDF_NO_KERNEL=1`` disables both. A backend that cannot be built logs one warning and the reference is used
+(or :class:`AnisdfError` is raised where the fast path is ``required``).
 
 Autograd: the forward is a :class:`torch.autograd.Function` whose backward (gradients to the table and to
 ``x``) is itself a Function with an exact backward, so the eikonal loss on analytic normals
 (``n = d sdf / d x`` with ``create_graph=True``) trains the table correctly. Unlike torch-ngp, the second
 derivative of the trilinear weights with respect to ``x`` is included, so ``x.grad`` also matches the
-reference. Third derivatives are not supported (the double backward is ``once_differentiable``).
-Inputs the kernel does not handle (CUDA tensors, dtypes other than float32, features per level other than
-1/2/4/8) are passed to the reference, so the returned function is always safe to call.
+reference. Third derivatives are not supported (the double backward is ``once_differentiable``). Both backends
+expose the same three functions (``encode_forward``, ``encode_backward``, ``encode_double_backward``); inputs
+neither handles (dtypes other than float32, features per level other than 1/2/4/8, other devices) are passed to
+the reference, so :func:`fast_hash_encode` is always safe to call.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import functools
 import logging
 import os
 import shutil
+import sys
 import time
 from pathlib import Path
 from types import ModuleType
@@ -104,9 +107,13 @@ def _short(err: BaseException) -> str:
     return msg[:300]
 
 
+def _disabled() -> bool:
+    return os.environ.get("ANISDF_NO_KERNEL", "") not in ("", "0")
+
+
 def kernel_module() -> ModuleType | None:
-    """The compiled extension (built on the first call in this process), or ``None`` if unavailable."""
-    if os.environ.get("ANISDF_NO_KERNEL", "") not in ("", "0"):
+    """The compiled CPU extension (built on the first call in this process), or ``None`` if unavailable."""
+    if _disabled():
         return None
     if _state["module"] is None and _state["error"] is None:
         try:
@@ -118,24 +125,112 @@ def kernel_module() -> ModuleType | None:
     return _state["module"]
 
 
-def _loaded() -> ModuleType:
-    """The module built earlier in this process (the autograd Functions run only after a successful build)."""
-    mod = _state["module"]
-    if mod is None:
-        raise AnisdfError("the compiled hash-grid kernel is not loaded")
-    return mod
-
-
 def kernel_info() -> dict[str, Any]:
     """Build facts for reports: extension name, flags, build/load seconds and the failure reason, if any."""
     return {k: _state[k] for k in ("name", "flags", "build_s", "error")}
 
 
+# Triton kernels per device (str(device)): {"module", "error", "build_s"}, filled by the first call.
+_triton_state: dict[str, dict[str, Any]] = {}
+
+
+def triton_module(device: torch.device | str) -> ModuleType | None:
+    """The Triton kernels for ``device``, checked once against the reference; ``None`` (one warning) if unusable.
+
+    On a CPU device this only works under ``TRITON_INTERPRET=1`` (how the tests run the kernels without a GPU).
+    """
+    if _disabled():
+        return None
+    key = _device_key(device)
+    if key not in _triton_state:
+        state: dict[str, Any] = {"module": None, "error": None, "build_s": None}
+        try:
+            from anisdf.fields import hash_encoding_triton as mod
+
+            t0 = time.perf_counter()
+            _self_check(mod, torch.device(device))
+            state.update(module=mod, build_s=time.perf_counter() - t0)
+            log.info("hash grid: Triton kernels on %s compiled and checked in %.1f s", key, state["build_s"])
+        except Exception as err:  # no triton, no compiler for this GPU, a wrong result: use the reference
+            state["error"] = _short(err)
+            log.warning("hash grid: Triton kernels unavailable on %s (%s); falling back to the PyTorch "
+                        "reference encoding", key, state["error"])
+        _triton_state[key] = state
+    return _triton_state[key]["module"]
+
+
+def _device_key(device: torch.device | str) -> str:
+    """``cuda`` and ``cuda:<current>`` are one device."""
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    return str(device)
+
+
+def triton_info(device: torch.device | str) -> dict[str, Any]:
+    """Like :func:`kernel_info`, for the Triton kernels on ``device`` (after :func:`triton_module`)."""
+    state = _triton_state.get(_device_key(device), {"error": "not loaded", "build_s": None})
+    try:
+        import triton
+
+        name = f"triton {triton.__version__}"
+    except ImportError:
+        name = None
+    return {"name": name, "flags": [f"BLOCK={_block()}"] if name else None, "build_s": state["build_s"],
+            "error": state["error"]}
+
+
+def _block() -> int | None:
+    mod = sys.modules.get("anisdf.fields.hash_encoding_triton")
+    return None if mod is None else mod.BLOCK
+
+
+def _self_check(mod: ModuleType, device: torch.device) -> None:
+    """Raise unless ``mod`` gives the reference's values, gradients and eikonal double backward on ``device``.
+
+    A small grid with dense and hashed levels, 300 points: it compiles every kernel variant that training uses.
+    The first call may come from inside ``no_grad``, ``inference_mode`` or bf16 autocast (a training step, a
+    render); the check sets its own float32, gradient-enabled context.
+    """
+    with torch.inference_mode(False), torch.enable_grad(), torch.autocast(device.type, enabled=False):
+        _compare_with_reference(mod, device)
+
+
+def _compare_with_reference(mod: ModuleType, device: torch.device) -> None:
+    spec = GridSpec(n_levels=4, features_per_level=2, log2_hashmap_size=10, base_resolution=6, per_level_scale=1.6)
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(300, 3, generator=gen).to(device)
+    table = torch.randn(spec.n_params, 2, generator=gen).to(device)
+    w = torch.randn(300, spec.output_dim, generator=gen).to(device)
+    results = []
+    for encode in (hash_encode_reference, functools.partial(_apply, ops=mod)):
+        xx, tt = x.clone().requires_grad_(True), table.clone().requires_grad_(True)
+        out = encode(xx, tt, spec)
+        gx, gt = torch.autograd.grad((out * w).sum(), [xx, tt], create_graph=True)
+        second = torch.autograd.grad(gx.pow(2).sum(), [xx, tt])
+        results.append([t.detach() for t in (out, gx, gt, *second)])
+    names = ("values", "point gradient", "table gradient", "eikonal point gradient", "eikonal table gradient")
+    for name, a, b in zip(names, *results, strict=True):
+        err = float((a - b).abs().max()) / max(1.0, float(b.abs().max()))
+        if not err <= 1e-4:
+            raise RuntimeError(f"self-check failed: {name} differ from the reference by {err:.2g} (relative)")
+
+
+def fast_backend(device: torch.device | str) -> ModuleType | None:
+    """The fast kernels for tensors on ``device``: compiled C++ on CPU, Triton on CUDA; ``None`` if unavailable."""
+    device = torch.device(device)
+    if device.type == "cpu":
+        return kernel_module()
+    if device.type == "cuda":
+        return triton_module(device)
+    return None
+
+
 @functools.lru_cache(maxsize=64)
-def _levels(spec: GridSpec) -> Tensor:
-    """Per-level ``(resolution, hashed, offset)`` rows, the kernel's view of a :class:`GridSpec`."""
+def _levels(spec: GridSpec, device: torch.device | None = None) -> Tensor:
+    """Per-level ``(resolution, hashed, offset)`` rows, the kernels' view of a :class:`GridSpec`."""
     rows = [(r, int(h), o) for r, h, o in zip(spec.resolutions, spec.hashed, spec.offsets[:-1], strict=True)]
-    return torch.tensor(rows, dtype=torch.int64)
+    return torch.tensor(rows, dtype=torch.int64, device=device)
 
 
 def _engine_will_run(t: Tensor) -> bool:
@@ -157,12 +252,11 @@ class _EncodeBackward(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, g: Tensor, x: Tensor, table: Tensor, levels: Tensor, log2: int,  # type: ignore[override]
-                need_table: bool, need_x: bool) -> tuple[Tensor | None, Tensor | None]:
+                need_table: bool, need_x: bool, ops: ModuleType) -> tuple[Tensor | None, Tensor | None]:
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(g, x, table)
-        ctx.levels, ctx.log2 = levels, log2
-        ctx.mod = mod = _loaded()
-        gt, gx = mod.encode_backward(g, x, table, levels, log2, need_table, need_x)
+        ctx.levels, ctx.log2, ctx.ops = levels, log2, ops
+        gt, gx = ops.encode_backward(g, x, table, levels, log2, need_table, need_x)
         return gt, gx
 
     @staticmethod
@@ -172,20 +266,21 @@ class _EncodeBackward(torch.autograd.Function):
         need_g, need_x, need_table = ctx.needs_input_grad[:3]
         need_table = need_table and ggx is not None
         if not (need_g or need_x or need_table) or (ggt is None and ggx is None):
-            return (None,) * 7
-        og, ot, ox = ctx.mod.encode_double_backward(g, x, table, ggx, ggt, ctx.levels, ctx.log2,
-                                                need_g, need_table, need_x)
-        return og, ox, ot, None, None, None, None
+            return (None,) * 8
+        og, ot, ox = ctx.ops.encode_double_backward(g, x, table, ggx, ggt, ctx.levels, ctx.log2,
+                                                    need_g, need_table, need_x)
+        return og, ox, ot, None, None, None, None, None
 
 
 class _Encode(torch.autograd.Function):
-    """``(x [N, 3], table [T, F]) -> [N, L * F]``, the compiled :func:`hash_encode_reference`."""
+    """``(x [N, 3], table [T, F]) -> [N, L * F]``, :func:`hash_encode_reference` by the kernels ``ops``."""
 
     @staticmethod
-    def forward(ctx: Any, x: Tensor, table: Tensor, levels: Tensor, log2: int) -> Tensor:  # type: ignore[override]
+    def forward(ctx: Any, x: Tensor, table: Tensor, levels: Tensor, log2: int,  # type: ignore[override]
+                ops: ModuleType) -> Tensor:
         ctx.save_for_backward(x, table)
-        ctx.levels, ctx.log2 = levels, log2
-        return _loaded().encode_forward(x, table, levels, log2)
+        ctx.levels, ctx.log2, ctx.ops = levels, log2, ops
+        return ops.encode_forward(x, table, levels, log2)
 
     @staticmethod
     def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
@@ -194,43 +289,63 @@ class _Encode(torch.autograd.Function):
         if need_table and not _engine_will_run(table):
             need_table = False
         if not (need_x or need_table):
-            return None, None, None, None
-        gt, gx = _EncodeBackward.apply(g, x, table, ctx.levels, ctx.log2, need_table, need_x)
-        return gx, gt, None, None
+            return None, None, None, None, None
+        gt, gx = _EncodeBackward.apply(g, x, table, ctx.levels, ctx.log2, need_table, need_x, ctx.ops)
+        return gx, gt, None, None, None
+
+
+def _apply(x: Tensor, table: Tensor, spec: GridSpec, ops: ModuleType) -> Tensor:
+    return _Encode.apply(x.contiguous(), table, _levels(spec, x.device), spec.log2_hashmap_size, ops)
+
+
+def _kernel_inputs(x: Tensor, table: Tensor, spec: GridSpec) -> bool:
+    """Whether the kernels handle these inputs at all (dtype, device, features per level, table size)."""
+    return (x.device == table.device and x.dtype == torch.float32 and table.dtype == torch.float32
+            and spec.features_per_level in (1, 2, 4, 8) and 1 <= spec.log2_hashmap_size <= 31)
 
 
 def kernel_supports(x: Tensor, table: Tensor, spec: GridSpec) -> bool:
-    """Whether the compiled kernel handles these inputs (else :func:`fast_hash_encode` uses the reference)."""
-    return (x.device.type == "cpu" and table.device.type == "cpu"
-            and x.dtype == torch.float32 and table.dtype == torch.float32
-            and spec.features_per_level in (1, 2, 4, 8) and 1 <= spec.log2_hashmap_size <= 31
-            and kernel_module() is not None)
+    """Whether a fast kernel handles these inputs (else :func:`fast_hash_encode` uses the reference)."""
+    return _kernel_inputs(x, table, spec) and fast_backend(x.device) is not None
 
 
-def fast_hash_encode(x: Tensor, table: Tensor, spec: GridSpec) -> Tensor:
-    """Encode ``x`` in ``[0, 1]^3`` ``[N, 3]`` to ``[N, L * F]``; same contract as :func:`hash_encode_reference`."""
+def fast_hash_encode(x: Tensor, table: Tensor, spec: GridSpec, required: bool = False) -> Tensor:
+    """Encode ``x`` in ``[0, 1]^3`` ``[N, 3]`` to ``[N, L * F]``; same contract as :func:`hash_encode_reference`.
+
+    ``required=True`` (``geometry.encoding_backend=fast``) raises :class:`AnisdfError` where no fast kernel
+    exists for the device, instead of using the reference.
+    """
     if x.dim() != 2 or x.shape[-1] != 3:
         raise ValueError(f"hash encoding expects points [N, 3], got {tuple(x.shape)}")
     if tuple(table.shape) != (spec.n_params, spec.features_per_level):
         raise ValueError(f"hash table has shape {tuple(table.shape)}, the spec needs "
                          f"({spec.n_params}, {spec.features_per_level})")
-    if not kernel_supports(x, table, spec):
+    ops = fast_backend(x.device) if _kernel_inputs(x, table, spec) else None
+    if ops is None:
+        if required:
+            _require(x.device)
         return hash_encode_reference(x, table, spec)
-    return _Encode.apply(x.contiguous(), table, _levels(spec), spec.log2_hashmap_size)
+    return _apply(x, table, spec, ops)
 
 
-def load_fast_encoder(required: bool = False) -> EncodeFn | None:
-    """The compiled encoder ``fn(x, table, spec)``, or ``None`` (one warning logged) when it cannot be built.
+def _require(device: torch.device) -> None:
+    if _disabled():
+        raise AnisdfError("geometry.encoding_backend=fast, but ANISDF_NO_KERNEL is set")
+    if fast_backend(device) is None:
+        reason = _state["error"] if device.type == "cpu" else triton_info(device)["error"]
+        what = "the compiled hash-grid kernel could not be built" if device.type == "cpu" else \
+            f"no fast hash-grid kernel for {device}"
+        raise AnisdfError(f"geometry.encoding_backend=fast: {what} ({reason})")
+
+
+def load_fast_encoder(required: bool = False, device: torch.device | str = "cpu") -> EncodeFn | None:
+    """The fast encoder ``fn(x, table, spec)`` if ``device`` has a fast kernel, else ``None`` (one warning logged).
 
     ``required=True`` raises :class:`AnisdfError` instead of returning ``None``.
     """
-    if os.environ.get("ANISDF_NO_KERNEL", "") not in ("", "0"):
+    device = torch.device(device)
+    if fast_backend(device) is None:
         if required:
-            raise AnisdfError("geometry.encoding_backend=fast, but ANISDF_NO_KERNEL is set")
-        return None
-    if kernel_module() is None:
-        if required:
-            raise AnisdfError(f"geometry.encoding_backend=fast: the compiled hash-grid kernel could not be "
-                              f"built ({_state['error']})")
+            _require(device)
         return None
     return fast_hash_encode

@@ -34,29 +34,36 @@ def _scene(data: Path | None, downscale: float):
     return load_scene(data, downscale=downscale)
 
 
-def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20,
-                     device: torch.device | None = None) -> dict[str, Any]:
-    """Samples per second of whole training steps (cpu-quick), after ``warmup`` steps."""
-    from anisdf.systems.trainer import Trainer
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
-    device = device or torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    cfg = load_config("cpu-quick", [f"geometry.encoding_backend={backend}", "train.val_every=0",
-                                    "train.ckpt_every=0"])
+
+def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, device: torch.device | None = None,
+                     preset: str = "cpu-quick") -> dict[str, Any]:
+    """Samples per second of whole training steps of ``preset``, after ``warmup`` steps."""
+    from anisdf.systems.trainer import Trainer, pick_device
+
+    device = device or pick_device("auto")
+    cfg = load_config(preset, [f"geometry.encoding_backend={backend}", "train.val_every=0",
+                               "train.ckpt_every=0"])
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
         for _ in range(warmup):
             tr.train_step()
+        _sync(device)
         n, t0 = 0, time.perf_counter()
         for _ in range(steps):
             n += tr.train_step()["n_samples"]
+        _sync(device)
         dt = time.perf_counter() - t0
     return {"backend": backend, "steps": steps, "samples": n, "seconds": dt, "samples_per_s": n / dt,
             "ms_per_step": 1000 * dt / steps}
 
 
 def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0), eval_every_s: float = 30.0,
-                 n_views: int = 4) -> dict[str, Any]:
-    """Train cpu-quick and record when the mean test PSNR (first ``n_views`` views) first reaches each target.
+                 n_views: int = 4, device: torch.device | None = None, preset: str = "cpu-quick") -> dict[str, Any]:
+    """Train ``preset`` and record when the mean test PSNR (first ``n_views`` views) first reaches each target.
 
     Evaluation time is excluded from the clock.
     """
@@ -64,10 +71,10 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
 
     from anisdf.data.rays import RayDataset, eval_background
     from anisdf.systems.rendering import render_view
-    from anisdf.systems.trainer import Trainer
+    from anisdf.systems.trainer import Trainer, pick_device
 
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    cfg = load_config("cpu-quick", ["train.val_every=0", "train.ckpt_every=0"])
+    device = device or pick_device("auto")
+    cfg = load_config(preset, ["train.val_every=0", "train.ckpt_every=0"])
     reached: dict[str, float | None] = {f"{t:g}": None for t in targets}
     curve: list[tuple[float, int, float]] = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -77,6 +84,7 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
         while clock < minutes * 60 and tr.state.step < cfg.train.max_steps:
             t0 = time.perf_counter()
             tr.train_step()
+            _sync(device)
             clock += time.perf_counter() - t0
             if clock >= next_eval or tr.state.step == cfg.train.max_steps:
                 next_eval += eval_every_s
@@ -90,40 +98,46 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
     return {"minutes": minutes, "seconds_to_psnr": reached, "curve": curve}
 
 
-def run_bench(as_json: bool = False, quick: bool = False, data: Path | None = None, minutes: float = 10.0) -> dict:
+def run_bench(as_json: bool = False, quick: bool = False, data: Path | None = None, minutes: float = 10.0,
+              device: str = "auto", preset: str = "cpu-quick") -> dict:
+    """Encoding, training-step and time-to-quality figures on ``device`` (auto: CUDA if there is one)."""
     from anisdf.benchmarks.encoding import bench_encoding, format_table
     from anisdf.fields.hash_encoding_fast import load_fast_encoder
+    from anisdf.systems.trainer import pick_device
 
+    dev = pick_device(device)
+    on_cuda = dev.type == "cuda"
     result: dict[str, Any] = {"date": date.today().isoformat(), "machine": platform.machine(),
                               "cpu_threads": torch.get_num_threads(), "torch": torch.__version__,
-                              "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
-    enc = bench_encoding(n_points=1 << 16, repeats=3)
+                              "device": str(dev), "preset": preset,
+                              "cuda": torch.cuda.get_device_name(dev) if on_cuda else None}
+    enc = bench_encoding(n_points=1 << (18 if on_cuda else 16), repeats=3, device=dev)
     result["encoding"] = enc
     row = enc["settings"][0]
     result["encoding_fwd_bwd_speedup"] = row.get("speedup", {}).get("fwd+bwd")
-    scene = _scene(data, downscale=2)
-    ref = bench_train_step(scene, "torch")
-    fast_available = load_fast_encoder() is not None
-    fast = bench_train_step(scene, "auto") if fast_available else None
+    scene = _scene(data, downscale=2 if preset == "cpu-quick" else 1)
+    ref = bench_train_step(scene, "torch", device=dev, preset=preset)
+    fast_available = load_fast_encoder(device=dev) is not None
+    fast = bench_train_step(scene, "auto", device=dev, preset=preset) if fast_available else None
     result["train_step"] = {"reference": ref, "fast": fast}
     result["train_samples_per_s"] = (fast or ref)["samples_per_s"]
     result["train_step_speedup"] = fast["samples_per_s"] / ref["samples_per_s"] if fast else None
-    result["peak_memory_mb"] = (torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available()
+    result["peak_memory_mb"] = (torch.cuda.max_memory_allocated(dev) / 2**20 if on_cuda
                                 else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     if not quick:
-        result["time_to_psnr"] = time_to_psnr(scene, minutes)
+        result["time_to_psnr"] = time_to_psnr(scene, minutes, device=dev, preset=preset)
     if as_json:
         print(json.dumps(result))
         return result
     print(format_table(enc))
     print()
-    print("training step (cpu-quick, samples per second after 20 warm-up steps)")
+    print(f"training step ({preset} on {result['cuda'] or 'cpu'}, samples per second after 20 warm-up steps)")
     print(f"  reference  {ref['samples_per_s'] / 1e3:8.1f} k/s   {ref['ms_per_step']:7.0f} ms/step")
     if fast:
         print(f"  fast       {fast['samples_per_s'] / 1e3:8.1f} k/s   {fast['ms_per_step']:7.0f} ms/step"
               f"   speedup {result['train_step_speedup']:.2f}x")
     else:
-        print("  fast       (no compiled kernel on this machine)")
+        print(f"  fast       (no fast kernel for {dev})")
     print(f"peak memory {result['peak_memory_mb']:.0f} MB")
     if "time_to_psnr" in result:
         ttp = result["time_to_psnr"]
