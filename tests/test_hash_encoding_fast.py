@@ -109,6 +109,8 @@ def _encode_and_grads(encode, x: torch.Tensor, table: torch.Tensor, spec: GridSp
     (SMALL, 1000, -0.25, 1.25),  # outside the unit cube: clamped cells, extrapolated weights
     (GridSpec(), 2000, 0.0, 1.0),
     (GridSpec(n_levels=10), 1500, 0.0, 1.0),
+    *[(GridSpec(n_levels=4, features_per_level=f, log2_hashmap_size=10, base_resolution=6), 400, 0.0, 1.0)
+      for f in (1, 4, 8)],  # the other table widths both kernels handle
 ])
 def test_values_and_gradients_match_reference(fast, spec: GridSpec, n: int, lo: float, hi: float) -> None:
     gen = torch.Generator().manual_seed(n + spec.n_levels)

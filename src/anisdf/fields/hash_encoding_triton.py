@@ -36,15 +36,6 @@ NUM_WARPS = 4
 
 
 @triton.jit
-def _level(levels_ptr, lvl):
-    """(resolution as float, its last cell as float, dense stride, hashed flag, table offset) of level ``lvl``."""
-    r = tl.load(levels_ptr + 3 * lvl)
-    hashed = tl.load(levels_ptr + 3 * lvl + 1)
-    off = tl.load(levels_ptr + 3 * lvl + 2)
-    return r.to(tl.float32), tl.maximum(r - 1, 0).to(tl.float32), (r + 1).to(tl.uint32), hashed != 0, off
-
-
-@triton.jit
 def _cell(p, res, maxbase):
     """Lower cell corner (uint32) and fraction of coordinate ``p`` (as the reference: clamp(floor(p*R), 0, R-1)).
 
@@ -55,6 +46,20 @@ def _cell(p, res, maxbase):
     b = tl.where(b >= 0.0, b, 0.0)
     b = tl.where(b > maxbase, maxbase, b)
     return b.to(tl.int32).to(tl.uint32), pos - b
+
+
+@triton.jit
+def _level_cells(levels_ptr, lvl, px, py, pz):
+    """Level ``lvl``'s resolution, dense stride, hashed flag and table offset, and the points' cells in it."""
+    r = tl.load(levels_ptr + 3 * lvl)
+    hashed = tl.load(levels_ptr + 3 * lvl + 1) != 0
+    off = tl.load(levels_ptr + 3 * lvl + 2)
+    res = r.to(tl.float32)
+    maxbase = tl.maximum(r - 1, 0).to(tl.float32)
+    bx, fx = _cell(px, res, maxbase)
+    by, fy = _cell(py, res, maxbase)
+    bz, fz = _cell(pz, res, maxbase)
+    return res, (r + 1).to(tl.uint32), hashed, off, bx, by, bz, fx, fy, fz
 
 
 @triton.jit
@@ -80,12 +85,23 @@ def _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, K: tl.conste
 
 @triton.jit
 def _points(x_ptr, N, BLOCK_: tl.constexpr):
-    n = tl.program_id(0) * BLOCK_ + tl.arange(0, BLOCK_)
+    n = (tl.program_id(0) * BLOCK_ + tl.arange(0, BLOCK_)).to(tl.int64)
     m = n < N
-    px = tl.load(x_ptr + 3 * n, mask=m, other=0.0)
-    py = tl.load(x_ptr + 3 * n + 1, mask=m, other=0.0)
-    pz = tl.load(x_ptr + 3 * n + 2, mask=m, other=0.0)
-    return n.to(tl.int64), m, px, py, pz
+    px, py, pz = _load3(x_ptr, n, m)
+    return n, m, px, py, pz
+
+
+@triton.jit
+def _load3(ptr, n, m):
+    return (tl.load(ptr + 3 * n, mask=m, other=0.0), tl.load(ptr + 3 * n + 1, mask=m, other=0.0),
+            tl.load(ptr + 3 * n + 2, mask=m, other=0.0))
+
+
+@triton.jit
+def _store3(ptr, n, m, a, b, c):
+    tl.store(ptr + 3 * n, a, mask=m)
+    tl.store(ptr + 3 * n + 1, b, mask=m)
+    tl.store(ptr + 3 * n + 2, c, mask=m)
 
 
 @triton.jit
@@ -95,10 +111,7 @@ def _forward_kernel(x_ptr, table_ptr, levels_ptr, out_ptr, N, L, hash_mask,
     fr = tl.arange(0, F)
     m2 = m[:, None]
     for lvl in range(L):
-        res, maxbase, stride, hashed, off = _level(levels_ptr, lvl)
-        bx, fx = _cell(px, res, maxbase)
-        by, fy = _cell(py, res, maxbase)
-        bz, fz = _cell(pz, res, maxbase)
+        res, stride, hashed, off, bx, by, bz, fx, fy, fz = _level_cells(levels_ptr, lvl, px, py, pz)
         acc = tl.zeros((BLOCK_, F), dtype=tl.float32)
         for k in tl.static_range(8):
             row, w, _, _, _, _, _, _ = _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, k)
@@ -117,10 +130,7 @@ def _backward_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, gt_ptr, gx_ptr, N, L, 
     ay = tl.zeros((BLOCK_,), dtype=tl.float32)
     az = tl.zeros((BLOCK_,), dtype=tl.float32)
     for lvl in range(L):
-        res, maxbase, stride, hashed, off = _level(levels_ptr, lvl)
-        bx, fx = _cell(px, res, maxbase)
-        by, fy = _cell(py, res, maxbase)
-        bz, fz = _cell(pz, res, maxbase)
+        res, stride, hashed, off, bx, by, bz, fx, fy, fz = _level_cells(levels_ptr, lvl, px, py, pz)
         g = tl.load(g_ptr + n[:, None] * (L * F) + lvl * F + fr[None, :], mask=m2, other=0.0)
         lx = tl.zeros((BLOCK_,), dtype=tl.float32)
         ly = tl.zeros((BLOCK_,), dtype=tl.float32)
@@ -140,9 +150,7 @@ def _backward_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, gt_ptr, gx_ptr, N, L, 
             ay += res * ly
             az += res * lz
     if NEED_X:
-        tl.store(gx_ptr + 3 * n, ax, mask=m)
-        tl.store(gx_ptr + 3 * n + 1, ay, mask=m)
-        tl.store(gx_ptr + 3 * n + 2, az, mask=m)
+        _store3(gx_ptr, n, m, ax, ay, az)
 
 
 @triton.jit
@@ -159,14 +167,9 @@ def _double_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, ggx_ptr, ggt_ptr, og_ptr
     qy = tl.zeros((BLOCK_,), dtype=tl.float32)
     qz = tl.zeros((BLOCK_,), dtype=tl.float32)
     if HAS_GGX:
-        qx = tl.load(ggx_ptr + 3 * n, mask=m, other=0.0)
-        qy = tl.load(ggx_ptr + 3 * n + 1, mask=m, other=0.0)
-        qz = tl.load(ggx_ptr + 3 * n + 2, mask=m, other=0.0)
+        qx, qy, qz = _load3(ggx_ptr, n, m)
     for lvl in range(L):
-        res, maxbase, stride, hashed, off = _level(levels_ptr, lvl)
-        bx, fx = _cell(px, res, maxbase)
-        by, fy = _cell(py, res, maxbase)
-        bz, fz = _cell(pz, res, maxbase)
+        res, stride, hashed, off, bx, by, bz, fx, fy, fz = _level_cells(levels_ptr, lvl, px, py, pz)
         gp = n[:, None] * (L * F) + lvl * F + fr[None, :]
         g = tl.load(g_ptr + gp, mask=m2, other=0.0)
         gx_ = res * qx
@@ -213,9 +216,7 @@ def _double_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, ggx_ptr, ggt_ptr, og_ptr
             ey += res * (ay + gx_ * sxy + gz_ * syz)
             ez += res * (az + gx_ * sxz + gy_ * syz)
     if OUT_X:
-        tl.store(ox_ptr + 3 * n, ex, mask=m)
-        tl.store(ox_ptr + 3 * n + 1, ey, mask=m)
-        tl.store(ox_ptr + 3 * n + 2, ez, mask=m)
+        _store3(ox_ptr, n, m, ex, ey, ez)
 
 
 # ------------------------------------------------------------------------------------------ entry points
