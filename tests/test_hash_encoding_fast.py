@@ -333,3 +333,15 @@ def test_triton_self_check_catches_a_wrong_kernel(triton_ops) -> None:
         hef._self_check(triton_ops, device)
     with pytest.raises(RuntimeError, match="table gradient differ"):
         hef._self_check(Wrong(), device)
+
+
+def test_encoding_benchmark_reports_both_backends(kernel) -> None:
+    from anisdf.benchmarks.encoding import bench_encoding, format_table
+
+    res = bench_encoding(n_points=2048, repeats=1, settings={"small": SMALL}, threads=1)
+    row = res["settings"][0]
+    assert res["kernel_available"] and res["device"] == "cpu"
+    assert row["max_abs_diff_fwd"] < 1e-5
+    assert set(row["speedup"]) == {"fwd", "fwd+bwd", "eikonal"} and all(v > 0 for v in row["speedup"].values())
+    table = format_table(res)
+    assert "speedup" in table and "random-read floor" in table
