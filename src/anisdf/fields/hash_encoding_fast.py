@@ -88,6 +88,7 @@ def _build() -> ModuleType:
     if root:
         build_dir = Path(root).expanduser() / name
         build_dir.mkdir(parents=True, exist_ok=True)
+    log.info("hash grid: loading the compiled CPU kernel (the first build takes about a minute)")
     t0 = time.perf_counter()
     module = cpp_extension.load(
         name=name,
@@ -147,6 +148,7 @@ def triton_module(device: torch.device | str) -> ModuleType | None:
         try:
             from anisdf.fields import hash_encoding_triton as mod
 
+            log.info("hash grid: compiling the Triton kernels for %s and checking them against the reference", key)
             t0 = time.perf_counter()
             _self_check(mod, torch.device(device))
             state.update(module=mod, build_s=time.perf_counter() - t0)
