@@ -139,3 +139,11 @@ def test_loss_dict_has_every_term(toy_scene, tmp_path):
     stats = tr.train_step()
     for key in ("rgb", "eikonal", "curvature", "orientation", "entropy", "total"):
         assert key in stats and np.isfinite(stats[key]), key
+
+
+def test_fast_backend_without_a_kernel_stops_before_training(toy_scene, tmp_path, monkeypatch):
+    """encoding_backend=fast where the device has no fast kernel: a clear error before any step or file."""
+    monkeypatch.setenv("ANISDF_NO_KERNEL", "1")
+    with pytest.raises(AnisdfError, match="encoding_backend=fast.*ANISDF_NO_KERNEL"):
+        _trainer(toy_scene, tmp_path / "run", ["geometry.encoding_backend=fast"])
+    assert not (tmp_path / "run").exists()

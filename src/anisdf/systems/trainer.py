@@ -72,6 +72,12 @@ class Trainer:
         torch.set_flush_denormal(True)
         torch.manual_seed(cfg.train.seed)
         self.gen = torch.Generator().manual_seed(cfg.train.seed)
+        if cfg.geometry.encoding_backend != "torch":
+            from anisdf.fields.hash_encoding_fast import load_fast_encoder
+
+            # build (CPU) or compile and check (CUDA) the hash-grid kernels now, not inside the first step;
+            # encoding_backend=fast stops here when the device has none
+            load_fast_encoder(required=cfg.geometry.encoding_backend == "fast", device=device)
         self.model = build_model(cfg, scene, device)
         o = cfg.optim
         groups = self.model.param_groups()
