@@ -46,7 +46,8 @@ DEFAULT_SETTINGS: dict[str, GridSpec] = {
 }
 
 
-def _sync(device: torch.device | None) -> None:
+def sync(device: torch.device | None) -> None:
+    """Wait for the device's queued work (CUDA), so that wall-clock timings are true; nothing on CPU."""
     if device is not None and device.type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -54,12 +55,12 @@ def _sync(device: torch.device | None) -> None:
 def _time(fn: Callable[[], Any], repeats: int, device: torch.device | None = None) -> tuple[float, float]:
     """(best, median) wall seconds over ``repeats`` runs after one warm-up run."""
     fn()
-    _sync(device)
+    sync(device)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        sync(device)
         times.append(time.perf_counter() - t0)
     return min(times), statistics.median(times)
 

@@ -26,7 +26,6 @@ import functools
 import logging
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 from types import ModuleType
@@ -171,20 +170,16 @@ def _device_key(device: torch.device | str) -> str:
 
 def triton_info(device: torch.device | str) -> dict[str, Any]:
     """Like :func:`kernel_info`, for the Triton kernels on ``device`` (after :func:`triton_module`)."""
-    state = _triton_state.get(_device_key(device), {"error": "not loaded", "build_s": None})
+    state = _triton_state.get(_device_key(device), {"module": None, "error": "not loaded", "build_s": None})
     try:
         import triton
 
         name = f"triton {triton.__version__}"
     except ImportError:
         name = None
-    return {"name": name, "flags": [f"BLOCK={_block()}"] if name else None, "build_s": state["build_s"],
+    mod = state["module"]
+    return {"name": name, "flags": None if mod is None else [f"BLOCK={mod.BLOCK}"], "build_s": state["build_s"],
             "error": state["error"]}
-
-
-def _block() -> int | None:
-    mod = sys.modules.get("anisdf.fields.hash_encoding_triton")
-    return None if mod is None else mod.BLOCK
 
 
 def _self_check(mod: ModuleType, device: torch.device) -> None:

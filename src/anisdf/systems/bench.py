@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from anisdf.benchmarks.encoding import sync
 from anisdf.config import load_config
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "bunny_plastic"
@@ -34,11 +35,6 @@ def _scene(data: Path | None, downscale: float):
     return load_scene(data, downscale=downscale)
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, device: torch.device | None = None,
                      preset: str = "cpu-quick") -> dict[str, Any]:
     """Samples per second of whole training steps of ``preset``, after ``warmup`` steps."""
@@ -51,11 +47,11 @@ def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, dev
         tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
         for _ in range(warmup):
             tr.train_step()
-        _sync(device)
+        sync(device)
         n, t0 = 0, time.perf_counter()
         for _ in range(steps):
             n += tr.train_step()["n_samples"]
-        _sync(device)
+        sync(device)
         dt = time.perf_counter() - t0
     return {"backend": backend, "steps": steps, "samples": n, "seconds": dt, "samples_per_s": n / dt,
             "ms_per_step": 1000 * dt / steps}
@@ -84,7 +80,7 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
         while clock < minutes * 60 and tr.state.step < cfg.train.max_steps:
             t0 = time.perf_counter()
             tr.train_step()
-            _sync(device)
+            sync(device)
             clock += time.perf_counter() - t0
             if clock >= next_eval or tr.state.step == cfg.train.max_steps:
                 next_eval += eval_every_s
