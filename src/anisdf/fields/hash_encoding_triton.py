@@ -64,7 +64,8 @@ def _level_cells(levels_ptr, lvl, px, py, pz):
 
 @triton.jit
 def _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, K: tl.constexpr):
-    """Table row (int64), weight and d weight / d frac (3 components) of corner ``K`` (bits: x, y, z)."""
+    """Table row (int64), weight, d weight / d frac (x, y, z) and the mixed second derivatives (xy, xz, yz) of
+    corner ``K`` (bits: x, y, z). The weight is linear in each coordinate, so no other second derivative exists."""
     IX: tl.constexpr = K & 1
     IY: tl.constexpr = (K >> 1) & 1
     IZ: tl.constexpr = (K >> 2) & 1
@@ -80,7 +81,7 @@ def _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, K: tl.conste
     sx: tl.constexpr = 1.0 if IX else -1.0
     sy: tl.constexpr = 1.0 if IY else -1.0
     sz: tl.constexpr = 1.0 if IZ else -1.0
-    return row, wx * wy * wz, sx * wy * wz, sy * wx * wz, sz * wx * wy, wx, wy, wz
+    return row, wx * wy * wz, sx * wy * wz, sy * wx * wz, sz * wx * wy, (sx * sy) * wz, (sx * sz) * wy, (sy * sz) * wx
 
 
 @triton.jit
@@ -95,6 +96,12 @@ def _points(x_ptr, N, BLOCK_: tl.constexpr):
 def _load3(ptr, n, m):
     return (tl.load(ptr + 3 * n, mask=m, other=0.0), tl.load(ptr + 3 * n + 1, mask=m, other=0.0),
             tl.load(ptr + 3 * n + 2, mask=m, other=0.0))
+
+
+@triton.jit
+def _zeros3(BLOCK_: tl.constexpr):
+    return (tl.zeros((BLOCK_,), dtype=tl.float32), tl.zeros((BLOCK_,), dtype=tl.float32),
+            tl.zeros((BLOCK_,), dtype=tl.float32))
 
 
 @triton.jit
@@ -126,15 +133,11 @@ def _backward_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, gt_ptr, gx_ptr, N, L, 
     n, m, px, py, pz = _points(x_ptr, N, BLOCK_)
     fr = tl.arange(0, F)
     m2 = m[:, None]
-    ax = tl.zeros((BLOCK_,), dtype=tl.float32)
-    ay = tl.zeros((BLOCK_,), dtype=tl.float32)
-    az = tl.zeros((BLOCK_,), dtype=tl.float32)
+    ax, ay, az = _zeros3(BLOCK_)
     for lvl in range(L):
         res, stride, hashed, off, bx, by, bz, fx, fy, fz = _level_cells(levels_ptr, lvl, px, py, pz)
         g = tl.load(g_ptr + n[:, None] * (L * F) + lvl * F + fr[None, :], mask=m2, other=0.0)
-        lx = tl.zeros((BLOCK_,), dtype=tl.float32)
-        ly = tl.zeros((BLOCK_,), dtype=tl.float32)
-        lz = tl.zeros((BLOCK_,), dtype=tl.float32)
+        lx, ly, lz = _zeros3(BLOCK_)
         for k in tl.static_range(8):
             row, w, dwx, dwy, dwz, _, _, _ = _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, k)
             rp = row[:, None] * F + fr[None, :]
@@ -160,12 +163,8 @@ def _double_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, ggx_ptr, ggt_ptr, og_ptr
     n, m, px, py, pz = _points(x_ptr, N, BLOCK_)
     fr = tl.arange(0, F)
     m2 = m[:, None]
-    ex = tl.zeros((BLOCK_,), dtype=tl.float32)
-    ey = tl.zeros((BLOCK_,), dtype=tl.float32)
-    ez = tl.zeros((BLOCK_,), dtype=tl.float32)
-    qx = tl.zeros((BLOCK_,), dtype=tl.float32)
-    qy = tl.zeros((BLOCK_,), dtype=tl.float32)
-    qz = tl.zeros((BLOCK_,), dtype=tl.float32)
+    ex, ey, ez = _zeros3(BLOCK_)
+    qx, qy, qz = _zeros3(BLOCK_)
     if HAS_GGX:
         qx, qy, qz = _load3(ggx_ptr, n, m)
     for lvl in range(L):
@@ -176,18 +175,11 @@ def _double_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, ggx_ptr, ggt_ptr, og_ptr
         gy_ = res * qy
         gz_ = res * qz
         acc_g = tl.zeros((BLOCK_, F), dtype=tl.float32)
-        sxy = tl.zeros((BLOCK_,), dtype=tl.float32)  # mixed second derivatives of the interpolant of <t, g>
-        sxz = tl.zeros((BLOCK_,), dtype=tl.float32)
-        syz = tl.zeros((BLOCK_,), dtype=tl.float32)
-        ax = tl.zeros((BLOCK_,), dtype=tl.float32)
-        ay = tl.zeros((BLOCK_,), dtype=tl.float32)
-        az = tl.zeros((BLOCK_,), dtype=tl.float32)
+        sxy, sxz, syz = _zeros3(BLOCK_)  # mixed second derivatives of the interpolant of <t, g>
+        ax, ay, az = _zeros3(BLOCK_)
         for k in tl.static_range(8):
-            row, w, dwx, dwy, dwz, wx, wy, wz = _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, k)
+            row, w, dwx, dwy, dwz, dxy, dxz, dyz = _corner(bx, by, bz, fx, fy, fz, stride, hashed, hash_mask, off, k)
             rp = row[:, None] * F + fr[None, :]
-            SX: tl.constexpr = 1.0 if (k & 1) else -1.0
-            SY: tl.constexpr = 1.0 if ((k >> 1) & 1) else -1.0
-            SZ: tl.constexpr = 1.0 if ((k >> 2) & 1) else -1.0
             if HAS_GGX:
                 v = gx_ * dwx + gy_ * dwy + gz_ * dwz  # R * (change of w_k along ggx)
                 if OUT_G or OUT_X:
@@ -195,9 +187,9 @@ def _double_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, ggx_ptr, ggt_ptr, og_ptr
                     acc_g += v[:, None] * t
                     if OUT_X:
                         s = tl.sum(t * g, axis=1)
-                        sxy += s * (SX * SY) * wz
-                        sxz += s * (SX * SZ) * wy
-                        syz += s * (SY * SZ) * wx
+                        sxy += s * dxy
+                        sxz += s * dxz
+                        syz += s * dyz
                 if OUT_T:
                     tl.atomic_add(ot_ptr + rp, v[:, None] * g, mask=m2)
             if HAS_GGT:
