@@ -198,8 +198,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu", help="cpu (compiled C++ kernel) or cuda (Triton kernels)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = parser.parse_args(argv)
+    from anisdf.errors import AnisdfError
+    from anisdf.systems.trainer import pick_device
+
+    try:
+        device = pick_device(args.device)
+    except AnisdfError as err:
+        parser.error(str(err))
     result = bench_encoding(args.points, args.repeats, reference=not args.no_reference, threads=args.threads,
-                            device=args.device)
+                            device=device)
     print(json.dumps(result) if args.json else format_table(result))
     return 0
 
