@@ -77,7 +77,7 @@ def extract_mesh(run: Path, resolution: int = 512, fmt: str = "ply", device: str
     mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress)
     if not keep_floaters:
         mesh = remove_floaters(mesh)
-    mesh = color_vertices(mesh, model.diffuse_color)
+    mesh = color_vertices(mesh, model.diffuse_color, device=dev)
     mesh = to_world(mesh, np.asarray(ck["to_world"], dtype=np.float64))
     path = run / f"mesh.{fmt}"
     save_mesh(mesh, path, fmt)
