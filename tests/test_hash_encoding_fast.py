@@ -51,6 +51,11 @@ def _triton_encode(ops: object) -> Callable:
 
     def encode(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
         return hef._apply(x.to(device), table.to(device), spec, ops).cpu()
+    # Compiled for a GPU, Triton contracts multiply-adds into FMAs and the table gradient's atomics add in any
+    # order, so sums of thousands of terms (point gradients scale with the resolution, 2048 at the finest
+    # level) differ from the CPU reference by a few float32 ulps more than the interpreter does. On an H100
+    # the largest difference seen was 2.4e-5 of the largest value; wrong indices or weights give errors of order 1.
+    encode.slack = 5.0 if device == "cuda" else 1.0  # type: ignore[attr-defined]
     return encode
 
 
@@ -89,10 +94,10 @@ def _points(n: int, spec: GridSpec, gen: torch.Generator, lo: float = 0.0, hi: f
     return torch.cat([x, *special, corners])
 
 
-def _assert_close(actual: torch.Tensor, expected: torch.Tensor, rel: float = 2e-5) -> None:
+def _assert_close(actual: torch.Tensor, expected: torch.Tensor, rel: float = 2e-5, what: str = "") -> None:
     scale = max(1.0, float(expected.abs().max()))
     err = float((actual - expected).abs().max())
-    assert err <= rel * scale, f"max |diff| {err:.3g} > {rel:.1e} * {scale:.3g}"
+    assert err <= rel * scale, f"{what}: max |diff| {err:.3g} > {rel:.1e} * {scale:.3g}"
 
 
 def _encode_and_grads(encode, x: torch.Tensor, table: torch.Tensor, spec: GridSpec, w: torch.Tensor):
@@ -123,7 +128,7 @@ def test_values_and_gradients_match_reference(fast, spec: GridSpec, n: int, lo: 
     got = _encode_and_grads(fast, x, table, spec, w)
     for name, a, b in zip(("values", "grad table", "grad x"), got, ref, strict=True):
         assert a.shape == b.shape, name
-        _assert_close(a, b)
+        _assert_close(a, b, 2e-5 * getattr(fast, "slack", 1.0), name)
 
 
 def _eikonal_grads(encode, x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> list[torch.Tensor]:
@@ -151,7 +156,7 @@ def test_eikonal_double_backward_matches_reference(fast, spec: GridSpec) -> None
     # trilinear weights (which torch-ngp omits), so it matches too.
     for name, a, b in zip(("normal", "grad table", "grad x", "grad mlp"), got, ref, strict=True):
         assert float(b.abs().max()) > 0, name
-        _assert_close(a, b, rel=5e-5)
+        _assert_close(a, b, 5e-5 * getattr(fast, "slack", 1.0), name)
 
 
 def _through_table_gradient(encode, x, table, spec, w, u, with_x: bool) -> list[torch.Tensor]:
@@ -175,9 +180,9 @@ def test_differentiating_the_table_gradient_matches_reference(fast, with_x: bool
     with _one_thread():
         ref = _through_table_gradient(hash_encode_reference, x, table, SMALL, w, u, with_x)
     got = _through_table_gradient(fast, x, table, SMALL, w, u, with_x)
-    for a, b in zip(got, ref, strict=True):
-        assert float(b.abs().max()) > 0
-        _assert_close(a, b, rel=5e-5)
+    for name, a, b in zip(("grad x", "grad w", "grad table"), got, ref, strict=False):
+        assert float(b.abs().max()) > 0, name
+        _assert_close(a, b, 5e-5 * getattr(fast, "slack", 1.0), name)
 
 
 @pytest.mark.parametrize("backend", ["cpu", "triton"])
