@@ -147,3 +147,20 @@ def test_fast_backend_without_a_kernel_stops_before_training(toy_scene, tmp_path
     with pytest.raises(AnisdfError, match="encoding_backend=fast.*ANISDF_NO_KERNEL"):
         _trainer(toy_scene, tmp_path / "run", ["geometry.encoding_backend=fast"])
     assert not (tmp_path / "run").exists()
+
+
+def test_mixed_precision_step_trains_and_keeps_the_sdf_in_float32(toy_scene, tmp_path):
+    """bf16 autocast (CUDA's default) run on CPU: the same code path, so dtype slips show up without a GPU."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=60"])
+    tr.use_amp = True
+    first = tr.train_step()
+    for _ in range(59):
+        stats = tr.train_step()
+    assert all(np.isfinite(v) for v in stats.values()), stats
+    assert stats["psnr"] > first["psnr"] + 2, (first["psnr"], stats["psnr"])
+    batch = tr.train_data.sample(64, torch.Generator().manual_seed(1))
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        sdf, feat = tr.model.geometry(torch.zeros(5, 3))
+        out = tr.model.render_rays(batch.origins, batch.directions, batch.background)
+    assert sdf.dtype == feat.dtype == torch.float32
+    assert out["rgb"].dtype == out["opacity"].dtype == torch.float32

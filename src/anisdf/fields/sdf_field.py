@@ -104,13 +104,18 @@ class SDFField(nn.Module):
             b.set_step(step, self.cfg)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """SDF [N] and geometry feature F [N, feature_dim] (Eq. 5)."""
-        xn = x / self.radius
-        outs = [b(xn) for b in self.branches]
-        out = outs[0] if len(outs) == 1 else outs[0] + outs[1]
-        if self.cfg.kind == "fused" and self.cfg.fusion == "mean":
-            out = out * 0.5
-        return out[:, 0] * self.radius, out[:, 1:]
+        """SDF [N] and geometry feature F [N, feature_dim] (Eq. 5).
+
+        Always float32, also inside a bf16 autocast region: bf16's 8-bit mantissa is too coarse for a distance
+        field whose zero crossing is the surface and whose gradient is the normal.
+        """
+        with torch.autocast(x.device.type, enabled=False):
+            xn = x.to(torch.promote_types(x.dtype, torch.float32)) / self.radius
+            outs = [b(xn) for b in self.branches]
+            out = outs[0] if len(outs) == 1 else outs[0] + outs[1]
+            if self.cfg.kind == "fused" and self.cfg.fusion == "mean":
+                out = out * 0.5
+            return out[:, 0] * self.radius, out[:, 1:]
 
     def sdf(self, x: Tensor) -> Tensor:
         return self.forward(x)[0]

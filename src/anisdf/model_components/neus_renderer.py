@@ -52,10 +52,15 @@ def packed_weights(alpha: Tensor, ray_idx: Tensor, n_rays: int) -> tuple[Tensor,
 
 
 def composite(values: Tensor, weights: Tensor, ray_idx: Tensor, n_rays: int) -> Tensor:
-    """Per-ray sum of ``weights * values`` (values [S, C] or [S])."""
+    """Per-ray sum of ``weights * values`` (values [S, C] or [S]), accumulated in at least float32.
+
+    Under mixed precision the radiance heads return bf16 values; pixel sums are kept in float32.
+    """
     w = weights if values.dim() == 1 else weights[:, None]
-    out = torch.zeros((n_rays, *values.shape[1:]), device=values.device, dtype=values.dtype)
-    return out.index_add_(0, ray_idx, w * values)
+    src = w * values
+    src = src.to(torch.promote_types(src.dtype, torch.float32))
+    out = torch.zeros((n_rays, *values.shape[1:]), device=values.device, dtype=src.dtype)
+    return out.index_add_(0, ray_idx, src)
 
 
 @torch.no_grad()
