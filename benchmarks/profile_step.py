@@ -1,0 +1,70 @@
+"""Where does a training step's time go? ``python benchmarks/profile_step.py DATA [--preset P] [--device D]``.
+
+Trains ``--warmup`` steps, times ``--steps`` more (device-synchronised), then runs torch.profiler over
+``--profile`` steps and prints the operators that take the most device time and the most host time, and the
+number of kernel launches per step: a step dominated by host time is launch-bound, not compute-bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from anisdf.benchmarks.encoding import sync
+from anisdf.config import load_config
+from anisdf.data.dataparsers import load_scene
+from anisdf.systems.trainer import Trainer, pick_device
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data", type=Path)
+    ap.add_argument("--preset", default="nerf-synthetic")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--warmup", type=int, default=30)
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--profile", type=int, default=5)
+    ap.add_argument("--rows", type=int, default=25)
+    ap.add_argument("overrides", nargs="*", help="config overrides key=value")
+    args = ap.parse_args(argv)
+    dev = pick_device(args.device)
+    cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", *args.overrides])
+    scene = load_scene(args.data, downscale=cfg.data.downscale)
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = Trainer(cfg, scene, Path(tmp), dev, progress=False)
+        t0 = time.perf_counter()
+        for _ in range(args.warmup):
+            tr.train_step()
+        sync(dev)
+        print(f"warm-up: {args.warmup} steps in {time.perf_counter() - t0:.1f} s")
+        n, t0 = 0, time.perf_counter()
+        for _ in range(args.steps):
+            stats = tr.train_step()
+            n += stats["n_samples"]
+        sync(dev)
+        dt = time.perf_counter() - t0
+        print(f"{args.preset} on {dev}: {1000 * dt / args.steps:.1f} ms/step, {n / dt / 1e6:.2f} M samples/s, "
+              f"{n / args.steps / 1e3:.0f}k samples and {stats['n_rays']} rays per step")
+        acts = [torch.profiler.ProfilerActivity.CPU]
+        if dev.type == "cuda":
+            acts.append(torch.profiler.ProfilerActivity.CUDA)
+        with torch.profiler.profile(activities=acts) as prof:
+            for _ in range(args.profile):
+                tr.train_step()
+            sync(dev)
+    avg = prof.key_averages()
+    if dev.type == "cuda":
+        launches = sum(e.count for e in avg if e.key in ("cudaLaunchKernel", "cuLaunchKernel", "cuLaunchKernelEx"))
+        print(f"kernel launches per step: {launches / args.profile:.0f}")
+        print(avg.table(sort_by="self_cuda_time_total", row_limit=args.rows))
+    print(avg.table(sort_by="self_cpu_time_total", row_limit=args.rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
