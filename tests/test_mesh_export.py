@@ -330,3 +330,28 @@ def test_orbit_poses_opencv(up, look_at) -> None:
     np.testing.assert_allclose(steps, steps[0], rtol=1e-5)
     with pytest.raises(ValueError):
         orbit_poses(4, 1.0, 90.0)
+
+
+def _hollow_ball(hole: bool):
+    """A ball of radius 0.6 with a pocket of radius 0.3 inside; ``hole`` drills a shaft from the pocket to +z."""
+    def f(p: torch.Tensor) -> torch.Tensor:
+        r = p.norm(dim=-1)
+        d = torch.maximum(r - 0.6, 0.3 - r)
+        if hole:
+            shaft = torch.maximum(p[:, :2].norm(dim=-1) - 0.15, -p[:, 2])
+            d = torch.maximum(d, -shaft)
+        return d
+    return f
+
+
+def test_enclosed_pockets_are_filled_open_ones_kept() -> None:
+    closed = extract_mesh(_hollow_ball(False), resolution=64, two_pass=False, progress=False)
+    r = np.linalg.norm(closed.vertices, axis=1)
+    assert r.min() > 0.58 and closed.body_count == 1  # the inner shell is gone
+    inner = extract_mesh(_hollow_ball(False), resolution=64, two_pass=False, progress=False, keep_inner=True)
+    assert inner.body_count == 2 and np.linalg.norm(inner.vertices, axis=1).min() < 0.32
+    drilled = extract_mesh(_hollow_ball(True), resolution=64, two_pass=False, progress=False)
+    assert np.linalg.norm(drilled.vertices, axis=1).min() < 0.32  # reachable through the shaft: kept
+    # two-pass sparse extraction (the default) fills the same pocket
+    two_pass = extract_mesh(_hollow_ball(False), resolution=96, progress=False)
+    assert np.linalg.norm(two_pass.vertices, axis=1).min() > 0.58

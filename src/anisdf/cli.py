@@ -46,7 +46,7 @@ def cmd_extract_mesh(args: argparse.Namespace) -> int:
     from anisdf.systems.commands import extract_mesh
 
     path = extract_mesh(Path(args.run), resolution=args.resolution, fmt=args.format, device=args.device,
-                        keep_floaters=args.keep_floaters)
+                        keep_floaters=args.keep_floaters, keep_inner=args.keep_inner)
     print(path)
     return 0
 
@@ -119,6 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", type=int, default=512)
     s.add_argument("--format", choices=["ply", "obj", "glb"], default="ply")
     s.add_argument("--keep-floaters", action="store_true", help="keep small disconnected pieces")
+    s.add_argument("--keep-inner", action="store_true",
+                   help="keep surfaces around pockets enclosed inside the object (no camera outside sees them)")
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_extract_mesh)
 

@@ -66,7 +66,7 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
 
 
 def extract_mesh(run: Path, resolution: int = 512, fmt: str = "ply", device: str | None = None,
-                 keep_floaters: bool = False, progress: bool = True) -> Path:
+                 keep_floaters: bool = False, keep_inner: bool = False, progress: bool = True) -> Path:
     """Marching cubes on the SDF, vertex colours from the view branch, written in the dataset's frame."""
     from anisdf.export.mesh import color_vertices, remove_floaters, save_mesh, to_world
     from anisdf.export.mesh import extract_mesh as mc
@@ -74,7 +74,8 @@ def extract_mesh(run: Path, resolution: int = 512, fmt: str = "ply", device: str
 
     dev = pick_device(device or "auto")
     cfg, model, ck = load_run(run, dev)
-    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress)
+    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress,
+              keep_inner=keep_inner)
     if not keep_floaters:
         mesh = remove_floaters(mesh)
     mesh = color_vertices(mesh, model.diffuse_color, device=dev)
