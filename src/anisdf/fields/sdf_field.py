@@ -117,6 +117,13 @@ class SDFField(nn.Module):
                 out = out * 0.5
             return out[:, 0] * self.radius, out[:, 1:]
 
+    def cache_weights(self) -> None:
+        """Compute every weight-normed weight once; inside ``torch.nn.utils.parametrize.cached()`` later queries
+        reuse them (call with grad enabled, else the cached weights carry no gradient)."""
+        for b in self.branches:
+            for layer in b.layers:
+                layer.weight  # noqa: B018  (the access computes and caches the weight)
+
     def sdf(self, x: Tensor) -> Tensor:
         return self.forward(x)[0]
 
