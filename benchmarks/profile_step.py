@@ -18,6 +18,7 @@ import torch
 from anisdf.benchmarks.encoding import sync
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
+from anisdf.errors import AnisdfError
 from anisdf.systems.trainer import Trainer, pick_device
 
 
@@ -31,10 +32,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile", type=int, default=5)
     ap.add_argument("--rows", type=int, default=25)
     ap.add_argument("overrides", nargs="*", help="config overrides key=value")
-    args = ap.parse_args(argv)
-    dev = pick_device(args.device)
-    cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", *args.overrides])
-    scene = load_scene(args.data, downscale=cfg.data.downscale)
+    args = ap.parse_intermixed_args(argv)  # overrides may follow options
+    try:  # bad device, preset, override or dataset: one line naming it, not a traceback
+        dev = pick_device(args.device)
+        cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", *args.overrides])
+        scene = load_scene(args.data, downscale=cfg.data.downscale)
+    except AnisdfError as err:
+        ap.error(str(err))
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), dev, progress=False)
         t0 = time.perf_counter()
