@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import torch
@@ -19,6 +18,7 @@ from anisdf.benchmarks.encoding import sync
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.errors import AnisdfError
+from anisdf.systems.bench import time_train_steps
 from anisdf.systems.trainer import Trainer, pick_device
 
 
@@ -41,19 +41,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(err))
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), dev, progress=False)
-        t0 = time.perf_counter()
-        for _ in range(args.warmup):
-            tr.train_step()
-        sync(dev)
-        print(f"warm-up: {args.warmup} steps in {time.perf_counter() - t0:.1f} s")
-        n, t0 = 0, time.perf_counter()
-        for _ in range(args.steps):
-            stats = tr.train_step()
-            n += stats["n_samples"]
-        sync(dev)
-        dt = time.perf_counter() - t0
-        print(f"{args.preset} on {dev}: {1000 * dt / args.steps:.1f} ms/step, {n / dt / 1e6:.2f} M samples/s, "
-              f"{n / args.steps / 1e3:.0f}k samples and {stats['n_rays']} rays per step")
+        t = time_train_steps(tr, args.steps, args.warmup, dev)
+        print(f"warm-up: {args.warmup} steps in {t['warmup_s']:.1f} s")
+        print(f"{args.preset} on {dev}: {t['ms_per_step']:.1f} ms/step, {t['samples_per_s'] / 1e6:.2f} M samples/s, "
+              f"{t['samples'] / args.steps / 1e3:.0f}k samples and {t['last_n_rays']} rays per step")
         acts = [torch.profiler.ProfilerActivity.CPU]
         if dev.type == "cuda":
             acts.append(torch.profiler.ProfilerActivity.CUDA)

@@ -45,16 +45,24 @@ def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, dev
                                "train.ckpt_every=0"])
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
-        for _ in range(warmup):
-            tr.train_step()
-        sync(device)
-        n, t0 = 0, time.perf_counter()
-        for _ in range(steps):
-            n += tr.train_step()["n_samples"]
-        sync(device)
-        dt = time.perf_counter() - t0
-    return {"backend": backend, "steps": steps, "samples": n, "seconds": dt, "samples_per_s": n / dt,
-            "ms_per_step": 1000 * dt / steps}
+        return {"backend": backend, **time_train_steps(tr, steps, warmup, device)}
+
+
+def time_train_steps(tr, steps: int, warmup: int, device: torch.device) -> dict[str, Any]:
+    """Run ``warmup`` steps of trainer ``tr``, then time ``steps`` more (device-synchronised)."""
+    t0 = time.perf_counter()
+    for _ in range(warmup):
+        tr.train_step()
+    sync(device)
+    warmup_s = time.perf_counter() - t0
+    n, t0 = 0, time.perf_counter()
+    for _ in range(steps):
+        stats = tr.train_step()
+        n += stats["n_samples"]
+    sync(device)
+    dt = time.perf_counter() - t0
+    return {"steps": steps, "samples": n, "seconds": dt, "samples_per_s": n / dt, "ms_per_step": 1000 * dt / steps,
+            "warmup_s": warmup_s, "last_n_rays": stats["n_rays"]}
 
 
 def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0), eval_every_s: float = 30.0,
