@@ -147,6 +147,27 @@ def test_level_masking_switches_levels_on_progressively():
     assert int(coarse.active_levels) == coarse.n_levels
 
 
+def test_loaded_level_state_is_the_one_the_field_uses():
+    """The branches keep their active level count as a Python int and a 0/1 weight per feature (no GPU read per
+    query); loading a state dict must update both, or a resumed run would query the wrong levels."""
+    cfg = load_config(None, ["geometry.log2_hashmap_size=12", "geometry.n_levels=8", "geometry.coarse_levels=6",
+                             "geometry.coarse_start_levels=2", "geometry.fine_start_levels=4",
+                             "geometry.max_resolution=64", "geometry.encoding_backend=torch"])
+    trained, fresh = SDFField(cfg.geometry), SDFField(cfg.geometry)
+    for b in trained.branches:
+        b.grid.table.data.normal_(0.0, 0.1)
+    trained.set_step(trained.cfg.level_start_step)  # one more level on each branch
+    fresh.load_state_dict(trained.state_dict())
+    assert any(b.n_active > b.start_levels for b in trained.branches)  # the test loads a state that differs
+    for bt, bf in zip(trained.branches, fresh.branches, strict=True):
+        assert bt.n_active == min(bt.start_levels + 1, bt.n_levels)
+        assert bf.n_active == bt.n_active == int(bf.active_levels)
+        assert torch.equal(bf.level_weights, bt.level_weights)
+        assert int(bf.level_weights.sum()) == bf.n_active * bf.features
+    x = torch.rand(64, 3) - 0.5
+    assert torch.equal(trained(x)[0], fresh(x)[0])
+
+
 def _sphere_sdf(x: torch.Tensor, r: float = 0.5) -> torch.Tensor:
     return x.norm(dim=-1) - r
 

@@ -79,6 +79,21 @@ def test_resume_continues_exactly(toy_scene, tmp_path):
         assert torch.equal(sa[k], sc[k]), k
 
 
+def test_resume_of_a_checkpoint_from_another_device_kind_warns_and_goes_on(toy_scene, tmp_path, caplog):
+    """A CUDA run's random stream (its generator lives on the GPU) does not fit a CPU generator: the run resumes
+    from the seed with a warning instead of failing."""
+    a = _trainer(toy_scene, tmp_path / "a", ["train.max_steps=2"])
+    a.fit()
+    ck = checkpoint.load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")
+    ck["generator"] = torch.zeros(16, dtype=torch.uint8)  # the size of a CUDA (Philox) generator state
+    b = _trainer(toy_scene, tmp_path / "a", ["train.max_steps=4"])
+    with caplog.at_level("WARNING", logger="anisdf"):
+        b.load_state_dict(ck)
+    assert "another kind of device" in caplog.text
+    assert b.state.step == 2 and b.model.step_int == 2
+    assert b.fit()["step"] == 4
+
+
 def test_same_seed_same_result(toy_scene, tmp_path):
     runs = []
     for name in ("x", "y"):

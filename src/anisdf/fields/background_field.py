@@ -63,7 +63,7 @@ class BackgroundNeRF(nn.Module):
         k = self.n_samples
         u = torch.arange(k + 1, device=origins.device, dtype=origins.dtype) / k
         if generator is not None:  # jitter the interior edges within their bins
-            jit = torch.rand(origins.shape[0], k + 1, generator=generator, device="cpu").to(origins.device)
+            jit = torch.rand(origins.shape[0], k + 1, generator=generator, device=generator.device).to(origins.device)
             u = (u + (jit - 0.5) / k).clamp(0.0, 1.0)
             u = torch.cat([torch.zeros_like(u[:, :1]), u[:, 1:-1], torch.ones_like(u[:, :1])], dim=-1)
         else:

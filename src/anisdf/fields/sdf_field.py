@@ -32,6 +32,11 @@ class SDFBranch(nn.Module):
         self.features = spec.features_per_level
         self.start_levels = min(start_levels, spec.n_levels)
         self.register_buffer("active_levels", torch.tensor(self.start_levels), persistent=True)
+        # the same count as a Python int and as a 0/1 weight per encoding feature, changed only by set_step: reading
+        # the buffer would wait for the GPU, and rebuilding the weights costs a few kernels per SDF query
+        self.n_active = self.start_levels
+        self.register_buffer("level_weights", self._weights(self.n_active), persistent=False)
+        self.register_load_state_dict_post_hook(lambda module, _keys: module._sync_levels())
         dims = [3 + spec.output_dim] + [cfg.hidden_dim] * cfg.n_hidden + [1 + cfg.feature_dim]
         layers = []
         for i in range(len(dims) - 1):
@@ -40,17 +45,25 @@ class SDFBranch(nn.Module):
             layers.append(weight_norm(lin))
         self.layers = nn.ModuleList(layers)
 
+    def _weights(self, n_active: int) -> Tensor:
+        return (torch.arange(self.n_levels) < n_active).float().repeat_interleave(self.features)
+
+    def _sync_levels(self) -> None:
+        """After loading a state dict: the Python count and the weights follow the loaded buffer."""
+        self.n_active = int(self.active_levels)
+        self.level_weights.copy_(self._weights(self.n_active))
+
     def set_step(self, step: int, cfg: GeometryConfig) -> None:
         extra = 0 if step < cfg.level_start_step else 1 + (step - cfg.level_start_step) // max(cfg.level_every, 1)
-        self.active_levels.fill_(min(self.start_levels + extra, self.n_levels))
-
-    def level_mask(self, device: torch.device, dtype: torch.dtype) -> Tensor:
-        lv = torch.arange(self.n_levels, device=device)
-        return (lv < self.active_levels.to(device)).to(dtype).repeat_interleave(self.features)
+        n = min(self.start_levels + extra, self.n_levels)
+        if n != self.n_active:
+            self.n_active = n
+            self.active_levels.fill_(n)
+            self.level_weights.copy_(self._weights(n))
 
     def forward(self, x: Tensor) -> Tensor:
-        """``x`` in [-1, 1]^3 -> [N, 1 + feature_dim] (SDF first)."""
-        enc = self.grid((x + 1.0) * 0.5) * self.level_mask(x.device, x.dtype)
+        """``x`` in [-1, 1]^3 -> [N, 1 + feature_dim] (SDF first); levels not yet switched on read as zero."""
+        enc = self.grid((x + 1.0) * 0.5) * self.level_weights
         h = torch.cat([x, enc], dim=-1)
         for i, layer in enumerate(self.layers):
             h = layer(h)

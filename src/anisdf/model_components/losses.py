@@ -47,7 +47,8 @@ def mask_loss(opacity: Tensor, mask: Tensor, eps: float = 1e-3) -> Tensor:
 
 def tangent_perturbation(x: Tensor, normal: Tensor, eps: float, generator: torch.Generator | None) -> Tensor:
     """Points ``x + eps * t`` with ``t`` a random unit tangent to the (detached) normal."""
-    r = torch.randn(x.shape, generator=generator, device="cpu").to(x.device, x.dtype)
+    dev = generator.device if generator is not None else x.device
+    r = torch.randn(x.shape, generator=generator, device=dev).to(x.device, x.dtype)
     n = normal.detach()
     t = F.normalize(torch.linalg.cross(n, r), dim=-1)
     return x + eps * t

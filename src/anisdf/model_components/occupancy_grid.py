@@ -55,9 +55,9 @@ class OccupancyGrid(nn.Module):
         if full:
             idx = torch.arange(n, device=dev)
         else:
-            rand = torch.randint(0, n, (n // 4,), generator=generator, device="cpu").to(dev)
+            rand = torch.randint(0, n, (n // 4,), generator=generator, device=generator.device).to(dev)
             idx = torch.unique(torch.cat([rand, self.occupied.nonzero()[:, 0]]))
-        jitter = torch.rand(idx.shape[0], 3, generator=generator, device="cpu").to(dev)
+        jitter = torch.rand(idx.shape[0], 3, generator=generator, device=generator.device).to(dev)
         thresh = math.sqrt(3.0) * self.cell_size + self.band / max(inv_s, 1e-6)
         new = torch.empty(idx.shape[0], dtype=torch.bool, device=dev)
         for s in range(0, idx.shape[0], chunk):

@@ -26,7 +26,9 @@ class Samples:
         return int(self.t.shape[0])
 
     def select(self, keep: Tensor) -> Samples:
-        return Samples(self.ray_idx[keep], self.t[keep], self.dt[keep], self.n_rays)
+        """The samples where the mask ``keep`` is true (or at the indices ``keep``), in order."""
+        idx = keep.nonzero()[:, 0] if keep.dtype == torch.bool else keep  # one host sync, not one per tensor
+        return Samples(self.ray_idx[idx], self.t[idx], self.dt[idx], self.n_rays)
 
     def positions(self, origins: Tensor, dirs: Tensor) -> Tensor:
         return origins[self.ray_idx] + dirs[self.ray_idx] * self.t[:, None]
@@ -54,15 +56,19 @@ def march(origins: Tensor, dirs: Tensor, grid: OccupancyGrid | None, radius: flo
     dev = origins.device
     near, far = sphere_intersect(origins, dirs, radius)
     out_r, out_t = [], []
-    for s in range(0, origins.shape[0], chunk_rays):
+    starts = range(0, origins.shape[0], chunk_rays)
+    # steps needed by the longest chord of each chunk, read back in one host sync
+    span = far - near
+    chunk_steps = ([int(v) for v in (torch.stack([span[s : s + chunk_rays].max() for s in starts]).clamp_min(0)
+                                     / step).ceil().tolist()] if len(starts) else [])
+    for s, n_steps in zip(starts, chunk_steps, strict=True):
         o, d = origins[s : s + chunk_rays], dirs[s : s + chunk_rays]
         n0, f0 = near[s : s + chunk_rays], far[s : s + chunk_rays]
-        n_steps = int(((f0 - n0).max().clamp_min(0) / step).ceil().item()) if o.shape[0] else 0
         n_steps = min(n_steps, max_samples)
         if n_steps == 0:
             continue
         if generator is not None:
-            u = torch.rand(o.shape[0], 1, generator=generator, device="cpu").to(dev)
+            u = torch.rand(o.shape[0], 1, generator=generator, device=generator.device).to(dev)
         else:
             u = torch.full((o.shape[0], 1), 0.5, device=dev)
         t = n0[:, None] + (torch.arange(n_steps, device=dev)[None] + u) * step  # [R, K]

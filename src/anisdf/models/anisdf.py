@@ -41,16 +41,20 @@ class AniSDFModel(nn.Module):
                                               backend=cfg.geometry.encoding_backend)
                                if r.background_model == "nerf" else EnvironmentBackground())
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
+        # the step as a Python int, which schedules read without waiting for the GPU (the buffer is for checkpoints)
+        self.step_int = 0
+        self.register_load_state_dict_post_hook(lambda module, _keys: module.set_step(int(module.step)))
 
     # ----------------------------------------------------------------------------------------- schedule
     def set_step(self, step: int) -> None:
+        self.step_int = step
         self.step.fill_(step)
         self.geometry.set_step(step)
 
     @property
     def cos_anneal(self) -> float:
         n = self.cfg.renderer.cos_anneal_steps
-        return 1.0 if n <= 0 else min(1.0, int(self.step) / n)
+        return 1.0 if n <= 0 else min(1.0, self.step_int / n)
 
     @property
     def step_size(self) -> float:
@@ -59,7 +63,7 @@ class AniSDFModel(nn.Module):
     def finest_cell(self) -> float:
         """Cell size of the finest active level (sets the curvature perturbation)."""
         b = self.geometry.branches[-1]
-        res = b.grid.spec.resolutions[int(b.active_levels) - 1]
+        res = b.grid.spec.resolutions[b.n_active - 1]
         return 2.0 * self.radius / res
 
     def fd_eps(self) -> float:
@@ -93,7 +97,7 @@ class AniSDFModel(nn.Module):
         alpha = neus_alpha(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
         weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
-        vis = weights.detach() > self.cfg.renderer.color_weight_eps
+        vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
         col_vis = self.appearance(feat[vis], normal[vis], d[vis])
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
@@ -131,7 +135,7 @@ class AniSDFModel(nn.Module):
                generator: torch.Generator | None) -> dict[str, Tensor]:
         """Loss dict (Eq. 17): weighted terms and their sum under ``total``."""
         lc = self.cfg.loss
-        step = int(self.step)
+        step = self.step_int
         terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out["rgb"], target, lc.rgb)}
         grad = out["_grad"]
         if grad.shape[0] == 0:
@@ -145,7 +149,8 @@ class AniSDFModel(nn.Module):
         if curv_w > 0:
             x, n = out["_x"], out["_normal"]
             k = min(x.shape[0], max(1024, x.shape[0] // 4))
-            sel = torch.randperm(x.shape[0], generator=generator, device="cpu")[:k].to(x.device)
+            dev = generator.device if generator is not None else x.device
+            sel = torch.randperm(x.shape[0], generator=generator, device=dev)[:k].to(x.device)
             x_eps = L.tangent_perturbation(x[sel], n[sel], self.finest_cell(), generator)
             _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
             terms["curvature"] = L.curvature_loss(n[sel], F.normalize(g_eps, dim=-1))

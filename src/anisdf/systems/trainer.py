@@ -75,7 +75,9 @@ class Trainer:
         # Tiny hash-table gradients squared in Adam become denormal floats, which are 10-100x slower on CPUs.
         torch.set_flush_denormal(True)
         torch.manual_seed(cfg.train.seed)
-        self.gen = torch.Generator().manual_seed(cfg.train.seed)
+        # every random draw of a step comes from one generator on the training device: on CUDA, drawing on the
+        # host and copying (randperm of ~250k samples, the occupancy jitter) cost milliseconds a step
+        self.gen = torch.Generator(device).manual_seed(cfg.train.seed)
         if cfg.geometry.encoding_backend != "torch":
             from anisdf.fields.hash_encoding_fast import load_fast_encoder
 
@@ -113,7 +115,11 @@ class Trainer:
         self.model.load_state_dict(ck["model"])
         self.opt.load_state_dict(ck["optimizer"])
         self.state = TrainState(**ck["state"])
-        self.gen.set_state(ck["generator"])
+        try:
+            self.gen.set_state(ck["generator"])
+        except (RuntimeError, ValueError):  # written on another kind of device: its random stream does not fit
+            log.warning("the checkpoint was written on another kind of device; random draws restart from the "
+                        "seed, so this resumed run is not bit-identical to an uninterrupted one")
         torch.set_rng_state(ck["torch_rng"])
         self.model.set_step(self.state.step)
 
@@ -161,26 +167,30 @@ class Trainer:
                                     generator=self.gen)
             terms = model.losses(out, batch.rgb, batch.mask, self.gen)
         loss = terms["total"]
-        value = float(loss.detach())
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        # every number the step reports is read back at once: on a GPU each read waits for the queue to drain
+        mse = torch.mean((out["rgb"].detach().float() - batch.rgb) ** 2)
+        names = list(terms)
+        *term_vals, mse_val, inv_s = torch.stack([terms[k].detach().float() for k in names]
+                                                 + [mse, out["inv_s"].float()]).tolist()
+        stats = dict(zip(names, term_vals, strict=True))
+        value = stats["total"]
         if not math.isfinite(value) or (st.step > 100 and st.loss_ema > 0
                                         and value > cfg.loss.explode_factor * st.loss_ema):
-            raise TrainingDiverged(
+            raise TrainingDiverged(  # before the optimiser step: the parameters are left as they were
                 f"step {st.step}: loss {value:.4g} is {'not finite' if not math.isfinite(value) else 'exploding'} "
                 f"(running mean {st.loss_ema:.4g}); the last good checkpoint {self.ckpt_path} is intact. "
                 "Try a lower optim.lr or loss weights.")
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
         self.opt.step()
         n_samples, n_marched = int(out["n_samples"]), int(out["n_marched"])
         # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4)
         scale = min(rc.samples_per_step / max(n_samples, 1), 4 * rc.samples_per_step / max(n_marched, 1))
         st.n_rays = int(min(max(st.n_rays * scale, rc.min_rays), rc.max_rays))
         st.loss_ema = value if st.loss_ema == 0 else 0.98 * st.loss_ema + 0.02 * value
-        mse = float(torch.mean((out["rgb"].detach() - batch.rgb) ** 2))
         st.step += 1
-        stats = {k: float(v.detach()) for k, v in terms.items()}
-        stats.update(psnr=psnr_from_mse(mse), n_samples=n_samples, n_rays=batch.origins.shape[0],
-                     inv_s=float(out["inv_s"]), lr=self.opt.param_groups[0]["lr"])
+        stats.update(psnr=psnr_from_mse(mse_val), n_samples=n_samples, n_rays=batch.origins.shape[0],
+                     inv_s=inv_s, lr=self.opt.param_groups[0]["lr"])
         return stats
 
     @torch.no_grad()
