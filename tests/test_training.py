@@ -165,7 +165,7 @@ def test_fast_backend_without_a_kernel_stops_before_training(toy_scene, tmp_path
 
 
 def test_mixed_precision_step_trains_and_keeps_the_sdf_in_float32(toy_scene, tmp_path):
-    """bf16 autocast (CUDA's default) run on CPU: the same code path, so dtype slips show up without a GPU."""
+    """bf16 autocast (train.amp=true on CUDA) run on CPU: the same code path, so dtype slips show up without a GPU."""
     tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=60"])
     tr.use_amp = True
     first = tr.train_step()

@@ -153,8 +153,10 @@ class TrainConfig:
     max_minutes: float = 0.0
     """Stop cleanly after this many minutes (0 = no limit)."""
     device: str = "auto"
-    amp: bool = True
-    """Mixed precision (CUDA only)."""
+    amp: bool = False
+    """bf16 autocast of the radiance heads (CUDA only; the SDF is always float32). Off by default: the H100 profile
+    found the step bound by kernel launches, not arithmetic (benchmarks/RESULTS.md); the heads' matrices are small
+    and autocast adds about 130 cast kernels a step. The GPU A/B of this switch is still to be run."""
     log_every: int = 25
     val_every: int = 1000
     ckpt_every: int = 1000

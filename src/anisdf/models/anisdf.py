@@ -106,12 +106,16 @@ class AniSDFModel(nn.Module):
             background = self.background(origins, dirs, generator if train else None)["rgb"]
         elif self.background is not None:
             background = self.background(dirs)
+        # training needs the colour and opacity only; the other maps (branch colours, blend weight, depth, normal)
+        # are for viewing and evaluation
         for key, val in col_vis.items():
-            out[key] = composite(val, w_vis, r_vis, n_rays)
+            if key == "rgb" or not train:
+                out[key] = composite(val, w_vis, r_vis, n_rays)
         out["rgb"] = out["rgb"] + (1.0 - opacity[:, None]) * background
         out["opacity"] = opacity
-        out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
-        out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
+        if not train:
+            out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
+            out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
         out["inv_s"] = inv_s.detach()
         out["n_samples"] = torch.tensor(s.n)
         out["n_marched"] = torch.tensor(n_marched)

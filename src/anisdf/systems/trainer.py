@@ -149,7 +149,8 @@ class Trainer:
     # ----------------------------------------------------------------------------------------- step
     def train_step(self) -> dict[str, float]:
         st, cfg, model = self.state, self.cfg, self.model
-        model.train()
+        if not model.training:  # train() walks every submodule; validation is what switches it off
+            model.train()
         model.set_step(st.step)
         rc = cfg.renderer
         if st.step % rc.grid_update_every == 0:
