@@ -3,11 +3,18 @@
 Trains ``--warmup`` steps, times ``--steps`` more (device-synchronised), then runs torch.profiler over
 ``--profile`` steps and prints the operators that take the most device time and the most host time, and the
 number of kernel launches per step: a step dominated by host time is launch-bound, not compute-bound.
+
+``--count`` (any device, also CPU) counts instead the operators one step dispatches that would launch a kernel
+on a GPU (views and allocations excluded), by phase: forward (with the normals' ``autograd.grad``), backward and
+optimiser (unfused on CPU, one fused kernel on CUDA); ``train.amp``'s casts are counted wherever it runs. It also
+counts reads of device values to the host (``.item()``, ``nonzero``, boolean-mask indexing), each of which waits
+for a GPU's queue to drain. It needs no GPU, so a launch budget can be tracked on any machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import sys
 import tempfile
 from pathlib import Path
@@ -15,6 +22,7 @@ from pathlib import Path
 import torch
 
 from anisdf.benchmarks.encoding import sync
+from anisdf.benchmarks.opcount import count_step
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.errors import AnisdfError
@@ -31,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--profile", type=int, default=5)
     ap.add_argument("--rows", type=int, default=25)
+    ap.add_argument("--count", action="store_true", help="count operators and host reads of one step instead")
     ap.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = ap.parse_intermixed_args(argv)  # overrides may follow options
     try:  # bad device, preset, override or dataset: one line naming it, not a traceback
@@ -41,6 +50,21 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(err))
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), dev, progress=False)
+        if args.count:
+            tr.use_amp = cfg.train.amp  # the autocast casts of a CUDA step are counted on any device
+            for _ in range(args.warmup):
+                tr.train_step()
+            c = count_step(tr)
+            phases: collections.Counter[str] = collections.Counter()
+            for (phase, _), n in c.kernels.items():
+                phases[phase] += n
+            reads = ", ".join(f"{name} {n} ({phase})" for (phase, name), n in c.host_reads.most_common())
+            print(f"{args.preset} on {dev}, step {tr.state.step}: {sum(phases.values())} kernel-launching operators "
+                  f"({', '.join(f'{p} {n}' for p, n in phases.items())}); "
+                  f"host reads: {sum(c.host_reads.values())} ({reads})")
+            for (phase, name), n in c.kernels.most_common(args.rows):
+                print(f"{n:6d}  {phase:<15} {name}")
+            return 0
         t = time_train_steps(tr, args.steps, args.warmup, dev)
         print(f"warm-up: {args.warmup} steps in {t['warmup_s']:.1f} s")
         print(f"{args.preset} on {dev}: {t['ms_per_step']:.1f} ms/step, {t['samples_per_s'] / 1e6:.2f} M samples/s, "
