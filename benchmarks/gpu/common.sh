@@ -1,0 +1,11 @@
+# Sourced by the scripts here. The device machine has torch+CUDA+Triton but not the project's other wheels:
+# carry `.whl` (trimesh, PyMCubes for its Python) and the dataset under `.data/` (both git-ignored).
+export PYTHONUNBUFFERED=1
+DATA=${DATA:-.data/bunny_plastic}
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+fi
+export PYTHONPATH=/tmp/site:$PWD/src
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+T0=$(date +%s)
+stamp() { echo "== t=$(( $(date +%s) - T0 ))s $*"; }
