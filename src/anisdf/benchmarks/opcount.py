@@ -3,6 +3,8 @@
 Counted on any device, so a launch budget can be tracked without a GPU: on CUDA a step of this model is bound by
 kernel launches and by host reads (each ``.item()``/``nonzero``/boolean-mask index waits for the GPU queue to
 drain), not by arithmetic (benchmarks/RESULTS.md). Used by ``benchmarks/profile_step.py --count`` and the tests.
+The hash grid's own kernels (C++ on CPU, Triton on CUDA) are not aten operators and are not counted: a few per
+SDF query and branch.
 """
 
 from __future__ import annotations
