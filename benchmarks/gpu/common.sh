@@ -2,6 +2,7 @@
 # carry `.whl` (trimesh, PyMCubes for its Python) and the dataset under `.data/` (both git-ignored).
 export PYTHONUNBUFFERED=1
 DATA=${DATA:-.data/bunny_plastic}
+[ -f "$DATA/transforms_train.json" ] || { echo "no dataset at $DATA: copy ../shared/data/bunny_plastic there (mkdir -p .data; echo /.data/ >> .git/info/exclude) and carry .data"; exit 1; }
 if ls .whl/*.whl >/dev/null 2>&1; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 fi
