@@ -168,6 +168,19 @@ def test_loaded_level_state_is_the_one_the_field_uses():
     assert torch.equal(trained(x)[0], fresh(x)[0])
 
 
+def test_loaded_step_is_the_one_the_schedules_use():
+    """The model's step is also a Python int (cos annealing, loss ramps); loading a state dict must set it."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12"])
+    trained, fresh = AniSDFModel(cfg), AniSDFModel(cfg)
+    trained.set_step(cfg.renderer.cos_anneal_steps // 2)
+    fresh.load_state_dict(trained.state_dict())
+    assert fresh.step_int == trained.step_int == cfg.renderer.cos_anneal_steps // 2
+    assert fresh.cos_anneal == pytest.approx(0.5, abs=0.01)
+    assert [b.n_active for b in fresh.geometry.branches] == [b.n_active for b in trained.geometry.branches]
+
+
 def _sphere_sdf(x: torch.Tensor, r: float = 0.5) -> torch.Tensor:
     return x.norm(dim=-1) - r
 

@@ -43,7 +43,8 @@ class AniSDFModel(nn.Module):
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         # the step as a Python int, which schedules read without waiting for the GPU (the buffer is for checkpoints)
         self.step_int = 0
-        self.register_load_state_dict_post_hook(lambda module, _keys: module.set_step(int(module.step)))
+        # after loading, the mirror follows the loaded buffer (each SDF branch keeps its own level mirror the same way)
+        self.register_load_state_dict_post_hook(lambda module, _keys: setattr(module, "step_int", int(module.step)))
 
     # ----------------------------------------------------------------------------------------- schedule
     def set_step(self, step: int) -> None:
