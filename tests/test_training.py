@@ -195,3 +195,44 @@ def test_mixed_precision_step_trains_and_keeps_the_sdf_in_float32(toy_scene, tmp
         out = tr.model.render_rays(batch.origins, batch.directions, batch.background)
     assert sdf.dtype == feat.dtype == torch.float32
     assert out["rgb"].dtype == out["opacity"].dtype == torch.float32
+
+
+def test_compiled_heads_give_the_eager_gradients(toy_scene, tmp_path):
+    """train.compile=true: the compiled radiance field and opacity train the same as the eager code they replace."""
+    grads, stats = [], []
+    for name, extra in (("eager", []), ("compiled", ["train.compile=true"])):
+        tr = _trainer(toy_scene, tmp_path / name, ["train.max_steps=10", *extra])
+        tr.opt.step = lambda: None  # keep the gradients of the first step, with the parameters unchanged
+        stats.append(tr.train_step())
+        stats.append(tr.train_step())  # a second sample count: the graphs are dynamic, not re-specialised
+        grads.append({n: p.grad.clone() for n, p in tr.model.named_parameters() if p.grad is not None})
+    fn = tr.model.color_fn
+    assert fn.checked and fn.compiled is not None, "the compiled path did not run"
+    assert stats[1]["n_samples"] != stats[0]["n_samples"] or stats[1]["n_rays"] != stats[0]["n_rays"]
+    for a, b in zip(stats[:2], stats[2:], strict=True):
+        assert a["total"] == pytest.approx(b["total"], rel=1e-4)
+    assert grads[0].keys() == grads[1].keys()
+    for n, g in grads[0].items():
+        scale = float(g.abs().max()) + 1e-12
+        assert float((g - grads[1][n]).abs().max()) <= 1e-3 * scale, n
+
+
+def test_a_head_that_cannot_compile_runs_eagerly_with_one_warning(monkeypatch, caplog):
+    from anisdf.model_components import compiled
+
+    def broken_compile(fn, dynamic):  # noqa: ANN001, ANN202  (a machine without a working compiler)
+        def run(*args):  # noqa: ANN002, ANN202
+            raise RuntimeError("no C++ compiler found")
+        return run
+
+    monkeypatch.setattr(compiled.torch, "compile", broken_compile)
+    head = compiled.Compiled(lambda x: x * 2.0, "the test head")
+    with caplog.at_level("WARNING", logger="anisdf"):
+        assert torch.equal(head(torch.ones(3)), torch.full((3,), 2.0))
+        assert torch.equal(head(torch.ones(2)), torch.full((2,), 2.0))
+    assert caplog.text.count("torch.compile of the test head failed") == 1
+    assert "no C++ compiler found" in caplog.text
+    # an error of the inputs is the caller's: it comes from the eager code, unchanged
+    bad = compiled.Compiled(lambda x: x.view(7), "the test head")
+    with pytest.raises(RuntimeError, match="shape"):
+        bad(torch.ones(3))

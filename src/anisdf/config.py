@@ -157,6 +157,10 @@ class TrainConfig:
     """bf16 autocast of the radiance heads (CUDA only; the SDF is always float32). Off by default: the H100 profile
     found the step bound by kernel launches, not arithmetic (benchmarks/RESULTS.md); the heads' matrices are small
     and autocast adds about 130 cast kernels a step. The GPU A/B of this switch is still to be run."""
+    compile: bool = False
+    """``torch.compile`` the radiance heads and the NeuS opacity (not the SDF, whose normals need a double backward),
+    falling back to eager code with one warning. Meant for CUDA, where it fuses many small kernels of a launch-bound
+    step; compiling costs about half a minute at start. On 2 CPU cores it made no measurable difference."""
     log_every: int = 25
     val_every: int = 1000
     ckpt_every: int = 1000

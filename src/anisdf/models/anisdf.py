@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -13,6 +14,7 @@ from anisdf.fields.background_field import BackgroundNeRF, EnvironmentBackground
 from anisdf.fields.radiance_field import RadianceField
 from anisdf.fields.sdf_field import SDFField
 from anisdf.model_components import losses as L
+from anisdf.model_components.compiled import Compiled
 from anisdf.model_components.neus_renderer import (
     Variance,
     composite,
@@ -45,6 +47,14 @@ class AniSDFModel(nn.Module):
         self.step_int = 0
         # after loading, the mirror follows the loaded buffer (each SDF branch keeps its own level mirror the same way)
         self.register_load_state_dict_post_hook(lambda module, _keys: setattr(module, "step_int", int(module.step)))
+        # the radiance heads and the opacity, eager until compile_heads() (plain attributes, not submodules)
+        self.color_fn: Callable[..., dict[str, Tensor]] = self.appearance.__call__
+        self.alpha_fn: Callable[..., Tensor] = neus_alpha
+
+    def compile_heads(self) -> None:
+        """``train.compile``: ``torch.compile`` the radiance field and the NeuS opacity (model_components/compiled)."""
+        self.color_fn = Compiled(self.appearance.forward, "the radiance field")
+        self.alpha_fn = Compiled(neus_alpha, "the NeuS opacity")
 
     # ----------------------------------------------------------------------------------------- schedule
     def set_step(self, step: int) -> None:
@@ -95,11 +105,11 @@ class AniSDFModel(nn.Module):
         x = origins[s.ray_idx] + d * s.t[:, None]
         sdf, feat, grad = self.geometry.with_gradient(x, create_graph=train, fd_eps=self.fd_eps())
         normal = F.normalize(grad, dim=-1)
-        alpha = neus_alpha(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
+        alpha = self.alpha_fn(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
         weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
-        col_vis = self.appearance(feat[vis], normal[vis], d[vis])
+        col_vis = self.color_fn(feat[vis], normal[vis], d[vis])
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
         opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)

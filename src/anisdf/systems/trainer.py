@@ -85,6 +85,8 @@ class Trainer:
             # encoding_backend=fast stops here when the device has none
             load_fast_encoder(required=cfg.geometry.encoding_backend == "fast", device=device)
         self.model = build_model(cfg, scene, device)
+        if cfg.train.compile:
+            self.model.compile_heads()
         o = cfg.optim
         groups = self.model.param_groups()
         groups[0]["lr"], groups[1]["lr"] = o.lr, o.lr_variance

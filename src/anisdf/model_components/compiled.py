@@ -1,0 +1,46 @@
+"""``torch.compile`` for the parts of a step that need no double backward, with the eager code kept beside it.
+
+On a GPU a training step of this model is bound by kernel launches (benchmarks/RESULTS.md): the radiance heads
+and the NeuS opacity are chains of small element-wise operators that inductor fuses into a few kernels. The SDF
+is left eager: its normals are differentiated twice (eikonal, curvature), which compiled graphs do not support.
+Shapes change every step (the number of samples), so graphs are compiled with dynamic shapes, once.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+log = logging.getLogger(__name__)
+
+
+class Compiled:
+    """``fn`` compiled on first call; if compiling fails there, one warning and the eager ``fn`` from then on.
+
+    An error that the eager function raises as well is the caller's error and propagates unchanged.
+    """
+
+    def __init__(self, fn: Callable[..., Any], name: str) -> None:
+        self.eager = fn
+        self.name = name
+        self.compiled: Callable[..., Any] | None = torch.compile(fn, dynamic=True)
+        self.checked = False
+
+    def __call__(self, *args: Any) -> Any:
+        if self.compiled is None:
+            return self.eager(*args)
+        if self.checked:
+            return self.compiled(*args)
+        try:
+            out = self.compiled(*args)
+        except Exception as err:  # noqa: BLE001  (any compiler failure: no C++ compiler, no Triton, ...)
+            out = self.eager(*args)  # raises here if the inputs, not the compiler, are at fault
+            log.warning("torch.compile of %s failed (%s: %s); running it eagerly", self.name,
+                        type(err).__name__, str(err).splitlines()[0] if str(err) else "")
+            self.compiled = None
+            return out
+        self.checked = True
+        return out
