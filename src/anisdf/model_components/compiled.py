@@ -18,7 +18,8 @@ log = logging.getLogger(__name__)
 
 
 class Compiled:
-    """``fn`` compiled on first call; if compiling fails there, one warning and the eager ``fn`` from then on.
+    """``fn`` compiled on first call. If a compiled call fails (no C++ compiler, no Triton, a recompile for new
+    inputs that breaks) and the eager ``fn`` succeeds on the same inputs: one warning, and eager from then on.
 
     An error that the eager function raises as well is the caller's error and propagates unchanged.
     """
@@ -27,20 +28,18 @@ class Compiled:
         self.eager = fn
         self.name = name
         self.compiled: Callable[..., Any] | None = torch.compile(fn, dynamic=True)
-        self.checked = False
+        self.compiled_calls = 0
 
     def __call__(self, *args: Any) -> Any:
         if self.compiled is None:
             return self.eager(*args)
-        if self.checked:
-            return self.compiled(*args)
         try:
             out = self.compiled(*args)
-        except Exception as err:  # noqa: BLE001  (any compiler failure: no C++ compiler, no Triton, ...)
+        except Exception as err:  # noqa: BLE001  (whatever the compiler raises; the eager call below decides)
             out = self.eager(*args)  # raises here if the inputs, not the compiler, are at fault
             log.warning("torch.compile of %s failed (%s: %s); running it eagerly", self.name,
                         type(err).__name__, str(err).splitlines()[0] if str(err) else "")
             self.compiled = None
             return out
-        self.checked = True
+        self.compiled_calls += 1
         return out
