@@ -5,6 +5,7 @@
 source "$(dirname "$0")/common.sh"
 nvidia-smi -L; python3 -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__)"
 stamp "tests on CUDA"; timeout 240 python3 -m pytest -q -rs -p no:cacheprovider tests > "$OUT/pytest_cuda.txt" 2>&1; tail -8 "$OUT/pytest_cuda.txt"
+stamp "what train.compile fuses"; timeout 60 python3 benchmarks/count_compiled_heads.py --device cuda 2>&1 | tail -4
 for v in train.amp=false train.compile=true train.amp=true; do
   stamp "profile nerf-synthetic $v"
   [ "$v" = train.compile=true ] || timeout 60 python3 benchmarks/profile_step.py "$DATA" --device cuda --count --warmup 40 --rows 0 $v
