@@ -1,15 +1,17 @@
 """What ``train.compile`` fuses: ``python benchmarks/count_compiled_heads.py [--device D] [--points N]``.
 
-Runs the nerf-synthetic radiance field and the NeuS opacity forward and backward once eagerly, counting the
-operators that launch a kernel (anisdf.benchmarks.opcount), and once compiled, counting the kernels inductor's
-generated code calls: fused kernels (C++ on CPU, Triton on CUDA) and library calls (matrix products). Counted, not
-timed: on a launch-bound GPU step each launch costs host time whatever its size.
+Runs each compiled part of a nerf-synthetic step forward and backward once eagerly, counting the operators that
+launch a kernel (anisdf.benchmarks.opcount), and once compiled, counting the kernels inductor's generated code
+calls: fused kernels (C++ on CPU, Triton on CUDA) and library calls (matrix products). The parts: the two SDF MLPs
+with their closed-form normals (under an eikonal loss, as in training), and the radiance field with the NeuS
+opacity. Counted, not timed: on a launch-bound GPU step each launch costs host time whatever its size.
 """
 
 from __future__ import annotations
 
 import argparse
 import re
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -18,10 +20,23 @@ from torch._inductor.utils import run_and_get_code
 from anisdf.benchmarks.opcount import OpCounter
 from anisdf.config import load_config
 from anisdf.fields.radiance_field import RadianceField
+from anisdf.fields.sdf_field import SDFField, mlp_with_input_grad
+from anisdf.model_components import losses as L
 from anisdf.model_components.neus_renderer import neus_alpha
 
 _FUSED = re.compile(r"^\s+(?:cpp_fused_\w+\(|triton_\w+\.run\()", re.M)
 _EXTERN = re.compile(r"extern_kernels\.\w+\(")
+
+
+def _count(step: Callable[..., None], fns: tuple[Callable, ...]) -> tuple[int, int, int, int]:
+    """Eager operators, then compiled graphs, fused kernels and library calls of one ``step(*fns)``."""
+    counter = OpCounter()
+    with counter:
+        step(*fns)
+    _, codes = run_and_get_code(step, *(torch.compile(f, dynamic=True) for f in fns))
+    calls = [c[c.find("def call("):] for c in codes]
+    return (sum(counter.kernels.values()), len(codes), sum(len(_FUSED.findall(c)) for c in calls),
+            sum(len(_EXTERN.findall(c)) for c in calls))
 
 
 def main() -> int:
@@ -33,40 +48,35 @@ def main() -> int:
     torch._inductor.config.fx_graph_cache = False  # generate the code, so that it can be read
     torch._functorch.config.enable_autograd_cache = False
     cfg = load_config("nerf-synthetic", [])
-    rf = RadianceField(cfg.appearance, cfg.geometry.feature_dim).to(dev)
     g = torch.Generator(dev).manual_seed(0)
+    rf = RadianceField(cfg.appearance, cfg.geometry.feature_dim).to(dev)
+    layers = [list(b.layers) for b in SDFField(cfg.geometry).to(dev).branches]
 
-    def inputs() -> tuple[torch.Tensor, ...]:
+    def heads(color, alpha) -> None:  # noqa: ANN001
         feat = torch.randn(n, cfg.geometry.feature_dim, generator=g, device=dev, requires_grad=True)
         grad = torch.randn(n, 3, generator=g, device=dev, requires_grad=True)
         dirs = F.normalize(torch.randn(n, 3, generator=g, device=dev), dim=-1)
         sdf = torch.randn(n, generator=g, device=dev, requires_grad=True)
         dt = torch.rand(n, generator=g, device=dev)
-        return feat, grad, dirs, sdf, dt, torch.tensor(30.0, device=dev, requires_grad=True)
-
-    def step(color, alpha, counter: OpCounter | None = None) -> None:  # noqa: ANN001
-        feat, grad, dirs, sdf, dt, inv_s = inputs()
-        normal = F.normalize(grad, dim=-1).detach()
-        if counter is not None:
-            counter.__enter__()
+        inv_s = torch.tensor(30.0, device=dev, requires_grad=True)
         a = alpha(sdf, grad, dirs, dt, inv_s, 0.5)
-        rgb = color(feat, normal, dirs)["rgb"]
+        rgb = color(feat, F.normalize(grad, dim=-1).detach(), dirs)["rgb"]
         (rgb.sum() + a.sum()).backward()
-        if counter is not None:
-            counter.__exit__(None, None, None)
 
-    counter = OpCounter()
-    step(rf, neus_alpha, counter)
-    eager = sum(counter.kernels.values())
-    _, codes = run_and_get_code(step, torch.compile(rf.forward, dynamic=True),
-                                torch.compile(neus_alpha, dynamic=True))
-    calls = [c[c.find("def call("):] for c in codes]
-    fused = sum(len(_FUSED.findall(c)) for c in calls)
-    extern = sum(len(_EXTERN.findall(c)) for c in calls)
-    print(f"radiance field + NeuS opacity, forward and backward, {n} points on {dev} (torch {torch.__version__})")
-    print("| | kernels launched |\n|---|---|")
-    print(f"| eager operators | {eager} |")
-    print(f"| compiled: {len(codes)} graphs, fused kernels + library calls | {fused} + {extern} = {fused + extern} |")
+    def sdf_mlps(mlp) -> None:  # noqa: ANN001
+        loss = 0.0
+        for lays in layers:  # coarse and fine branch: inputs of their own widths
+            h = torch.randn(n, lays[0].in_features, generator=g, device=dev, requires_grad=True)
+            out, grad = mlp(h, [lay.weight for lay in lays], [lay.bias for lay in lays])
+            loss = loss + L.eikonal_loss(grad[:, :3]) + out.sum()
+        loss.backward()
+
+    print(f"forward and backward, {n} points on {dev} (torch {torch.__version__})")
+    print("| part | eager operators | compiled: graphs, fused kernels + library calls |\n|---|---|---|")
+    for name, step, fns in (("SDF MLPs with closed-form normals", sdf_mlps, (mlp_with_input_grad,)),
+                            ("radiance field + NeuS opacity", heads, (rf.forward, neus_alpha))):
+        eager, graphs, fused, extern = _count(step, fns)
+        print(f"| {name} | {eager} | {graphs} graphs, {fused} + {extern} = {fused + extern} |")
     return 0
 
 

@@ -125,6 +125,47 @@ def test_fused_sdf_is_the_sum_of_branches():
     torch.testing.assert_close(feat, a[:, 1:] + b[:, 1:])
 
 
+@pytest.mark.parametrize(("kind", "fusion"), [("fused", "sum"), ("fused", "mean"), ("single", "sum")])
+def test_closed_form_normals_and_their_training_gradients_match_autograd(kind, fusion):
+    """with_gradient's closed-form MLP gradient equals autograd's d sdf / d x, and a loss on it (eikonal, as in
+    training) gives every parameter the gradient that the double backward through forward() gives."""
+    field = _sphere_field(kind)
+    field.cfg.fusion = fusion
+    field.double()
+    torch.manual_seed(3)
+    with torch.no_grad():  # away from the initial sphere, every level on: all paths carry weight
+        for b in field.branches:
+            b.grid.table.normal_(0.0, 0.1)
+            b.set_step(10**6, field.cfg)
+            for lay in b.layers:
+                lay.parametrizations.weight.original1.normal_(0.0, 0.3)
+    x = (torch.rand(300, 3, dtype=torch.float64) * 2.0 - 1.0) * 0.9
+
+    def autograd_reference():
+        xg = x.clone().requires_grad_(True)
+        sdf, feat = field(xg)
+        (g,) = torch.autograd.grad(sdf, xg, torch.ones_like(sdf), create_graph=True)
+        return sdf, feat, g
+
+    results = []
+    for fn in (autograd_reference, lambda: field.with_gradient(x * 1.0, create_graph=True)):
+        field.zero_grad()
+        sdf, feat, g = fn()
+        (L.eikonal_loss(g) + sdf.square().mean() + feat.sin().mean()).backward()
+        results.append((sdf, feat, g, {n: p.grad.clone() for n, p in field.named_parameters()}))
+    (sdf_r, feat_r, g_r, grads_r), (sdf_c, feat_c, g_c, grads_c) = results
+    torch.testing.assert_close(sdf_c, sdf_r)
+    torch.testing.assert_close(feat_c, feat_r)
+    torch.testing.assert_close(g_c, g_r, rtol=1e-7, atol=1e-9)
+    for n, g in grads_r.items():
+        assert float(g.abs().max()) > 0, n
+        torch.testing.assert_close(grads_c[n], g, rtol=1e-6, atol=1e-9 * float(g.abs().max()), msg=n)
+    # without create_graph: the same values, nothing left to differentiate
+    sdf_e, _, g_e = field.with_gradient(x, create_graph=False)
+    torch.testing.assert_close(g_e, g_r.detach(), rtol=1e-7, atol=1e-9)
+    assert not (sdf_e.requires_grad or g_e.requires_grad)
+
+
 def test_finite_difference_normals_match_analytic_gradient():
     fa = _sphere_field("fused", "analytic")
     ff = _sphere_field("fused", "finite_difference")

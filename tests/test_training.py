@@ -198,7 +198,7 @@ def test_mixed_precision_step_trains_and_keeps_the_sdf_in_float32(toy_scene, tmp
 
 
 def test_compiled_heads_give_the_eager_gradients(toy_scene, tmp_path):
-    """train.compile=true: the compiled radiance field and opacity train the same as the eager code they replace."""
+    """train.compile=true: the compiled SDF MLPs, radiance field and opacity train the same as the eager code."""
     grads, stats = [], []
     for name, extra in (("eager", []), ("compiled", ["train.compile=true"])):
         tr = _trainer(toy_scene, tmp_path / name, ["train.max_steps=10", *extra])
@@ -206,8 +206,10 @@ def test_compiled_heads_give_the_eager_gradients(toy_scene, tmp_path):
         stats.append(tr.train_step())
         stats.append(tr.train_step())  # a second sample count: the graphs are dynamic, not re-specialised
         grads.append({n: p.grad.clone() for n, p in tr.model.named_parameters() if p.grad is not None})
-    fn = tr.model.color_fn
-    assert fn.compiled is not None and fn.compiled_calls == 2, "the compiled path did not run"
+    for fn in (tr.model.color_fn, tr.model.alpha_fn):
+        assert fn.compiled is not None and fn.compiled_calls == 2, f"{fn.name}: the compiled path did not run"
+    sdf_fn = tr.model.geometry.mlp_fn  # 2 branches; normals in both steps, curvature from step 1 (its ramp starts at 0)
+    assert sdf_fn.compiled is not None and sdf_fn.compiled_calls == 6, "the SDF MLPs: the compiled path did not run"
     assert stats[1]["n_samples"] != stats[0]["n_samples"] or stats[1]["n_rays"] != stats[0]["n_rays"]
     for a, b in zip(stats[:2], stats[2:], strict=True):
         assert a["total"] == pytest.approx(b["total"], rel=1e-4)

@@ -58,8 +58,8 @@ class GeometryConfig:
     fusion: str = "sum"
     """sum (paper, Eq. 5) or mean (authors' release)."""
     normals: str = "analytic"
-    """analytic (autograd through the network, double backward in training) or finite_difference (4-point
-    tetrahedron, step fd_eps). Measured trade-off: benchmarks/RESULTS.md."""
+    """analytic (the exact gradient: closed form through the MLPs, autograd through the grids) or finite_difference
+    (4-point tetrahedron, step fd_eps). Measured trade-off: benchmarks/RESULTS.md."""
     fd_eps: float = 0.0
     """Finite-difference step; <= 0 follows the cell size of the finest active level (Neuralangelo)."""
     encoding_backend: str = "auto"
@@ -158,9 +158,10 @@ class TrainConfig:
     found the step bound by kernel launches, not arithmetic (benchmarks/RESULTS.md); the heads' matrices are small
     and autocast adds about 130 cast kernels a step. The GPU A/B of this switch is still to be run."""
     compile: bool = False
-    """``torch.compile`` the radiance heads and the NeuS opacity (not the SDF, whose normals need a double backward),
-    falling back to eager code with one warning. Meant for CUDA, where it fuses many small kernels of a launch-bound
-    step; compiling costs about half a minute at start. On 2 CPU cores it made no measurable difference."""
+    """``torch.compile`` the SDF MLPs (with their closed-form normals), the radiance heads and the NeuS opacity (not
+    the hash grids, which have their own kernels), falling back to eager code with one warning. Meant for CUDA,
+    where it fuses many small kernels of a launch-bound step; compiling costs about half a minute at start. On 2 CPU
+    cores it made no measurable difference."""
     log_every: int = 25
     val_every: int = 1000
     ckpt_every: int = 1000

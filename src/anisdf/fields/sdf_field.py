@@ -7,11 +7,16 @@ per-level scale; the coarse grid has ``m`` levels and starts with ``coarse_start
 has ``L`` levels and starts with ``fine_start_levels`` active, and both switch on one more level every
 ``level_every`` steps after ``level_start_step``. ``geometry.kind=single`` is the ablation: one grid of ``L``
 levels switched on coarse-to-fine.
+
+Analytic normals are computed in closed form through each MLP (:func:`mlp_with_input_grad`) and through the hash
+grid by one first-order ``autograd.grad``: training differentiates them once more for the eikonal and curvature
+terms, with no second-order autograd through the MLP, so ``train.compile`` can fuse the MLP part as well.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -20,6 +25,30 @@ from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
 from anisdf.fields.hash_encoding import GridSpec, HashGrid
+
+BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
+
+
+def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor]) -> tuple[Tensor, Tensor]:
+    """Softplus MLP ``out = W_L sp(... sp(W_1 h + b_1) ...) + b_L`` [N, O] and ``d out[:, 0] / d h`` [N, D].
+
+    The gradient is the chain rule written out: ``g = (((w_L * s_{L-1}) W_{L-1} * s_{L-2}) ... * s_1) W_1`` with
+    ``w_L`` the first row of ``W_L`` and ``s_i = sigmoid(beta z_i)`` the slope of softplus at layer ``i``'s
+    pre-activation ``z_i``. Only first-order operators: a loss on ``g`` needs one ordinary backward, and the whole
+    function is a plain graph that ``torch.compile`` can fuse (a double backward cannot be compiled).
+    """
+    slopes = []
+    for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
+        z = F.linear(h, w, b)
+        if i == len(weights) - 1:
+            h = z
+        else:
+            slopes.append(torch.sigmoid(BETA * z))
+            h = F.softplus(z, beta=BETA)
+    g = weights[-1][0].expand(h.shape[0], -1)
+    for w, s in zip(reversed(weights[:-1]), reversed(slopes), strict=True):
+        g = (g * s) @ w
+    return h, g
 
 
 class SDFBranch(nn.Module):
@@ -61,15 +90,35 @@ class SDFBranch(nn.Module):
             self.active_levels.fill_(n)
             self.level_weights.copy_(self._weights(n))
 
+    def encode(self, x: Tensor) -> Tensor:
+        """Hash-grid features of ``x`` in [-1, 1]^3; levels not yet switched on read as zero."""
+        return self.grid((x + 1.0) * 0.5) * self.level_weights
+
     def forward(self, x: Tensor) -> Tensor:
-        """``x`` in [-1, 1]^3 -> [N, 1 + feature_dim] (SDF first); levels not yet switched on read as zero."""
-        enc = self.grid((x + 1.0) * 0.5) * self.level_weights
-        h = torch.cat([x, enc], dim=-1)
+        """``x`` in [-1, 1]^3 -> [N, 1 + feature_dim] (SDF first)."""
+        h = torch.cat([x, self.encode(x)], dim=-1)
         for i, layer in enumerate(self.layers):
             h = layer(h)
             if i < len(self.layers) - 1:
-                h = F.softplus(h, beta=100.0)
+                h = F.softplus(h, beta=BETA)
         return h
+
+    def forward_with_grad(self, x: Tensor, create_graph: bool,
+                          mlp: Callable[..., tuple[Tensor, Tensor]] = mlp_with_input_grad) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` and the gradient of its SDF output w.r.t. ``x`` [N, 3]: the MLP's input gradient in
+        closed form (``mlp``, eager or compiled), then its grid part carried back through the encoding.
+
+        With ``create_graph`` both outputs are differentiable w.r.t. the parameters (training), else neither is.
+        Positions are sample points, constants: no gradient flows back to ``x``.
+        """
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            enc = self.encode(xg)
+        with torch.set_grad_enabled(create_graph):
+            out, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
+                         [lay.bias for lay in self.layers])
+            (g_enc,) = torch.autograd.grad(enc, xg, g[:, 3:], create_graph=create_graph)
+            return out, g[:, :3] + g_enc
 
 
 def _geometric_init(lin: nn.Linear, i: int, last: int, radius: float, out_scale: float) -> None:
@@ -111,6 +160,8 @@ class SDFField(nn.Module):
         else:
             self.branches = nn.ModuleList([SDFBranch(fine, cfg, cfg.coarse_start_levels, 1.0)])
         self.feature_dim = cfg.feature_dim
+        # the MLPs with their input gradient; model.compile_heads() swaps in a compiled copy (train.compile)
+        self.mlp_fn: Callable[..., tuple[Tensor, Tensor]] = mlp_with_input_grad
 
     def set_step(self, step: int) -> None:
         for b in self.branches:
@@ -123,12 +174,16 @@ class SDFField(nn.Module):
         field whose zero crossing is the surface and whose gradient is the normal.
         """
         with torch.autocast(x.device.type, enabled=False):
-            xn = x.to(torch.promote_types(x.dtype, torch.float32)) / self.radius
-            outs = [b(xn) for b in self.branches]
-            out = outs[0] if len(outs) == 1 else outs[0] + outs[1]
-            if self.cfg.kind == "fused" and self.cfg.fusion == "mean":
-                out = out * 0.5
+            out = self._fuse([b(self._normalised(x)) for b in self.branches])
             return out[:, 0] * self.radius, out[:, 1:]
+
+    def _normalised(self, x: Tensor) -> Tensor:
+        return x.to(torch.promote_types(x.dtype, torch.float32)) / self.radius
+
+    def _fuse(self, per_branch: list[Tensor]) -> Tensor:
+        """Eq. 5 on any per-branch quantity (outputs, gradients): the sum, or the mean with ``fusion=mean``."""
+        out = per_branch[0] if len(per_branch) == 1 else per_branch[0] + per_branch[1]
+        return out * 0.5 if self.cfg.kind == "fused" and self.cfg.fusion == "mean" else out
 
     def cache_weights(self) -> None:
         """Compute every weight-normed weight once; inside ``torch.nn.utils.parametrize.cached()`` later queries
@@ -144,7 +199,9 @@ class SDFField(nn.Module):
                       ) -> tuple[Tensor, Tensor, Tensor]:
         """SDF, feature and the SDF gradient (unnormalised normal) at ``x``.
 
-        ``geometry.normals=analytic`` differentiates through the network (double backward in training).
+        ``geometry.normals=analytic``: the exact gradient through the network (:meth:`SDFBranch.forward_with_grad`;
+        ``d sdf / d x = d out_0 / d x_n`` since ``sdf = radius out_0(x / radius)``), differentiable w.r.t. the
+        parameters with ``create_graph`` (training); ``x`` is treated as a constant.
         ``finite_difference`` evaluates the field at the 4 vertices ``x + eps v_k`` of a tetrahedron,
         ``v_k in {(1,-1,-1), (-1,-1,1), (-1,1,-1), (1,1,1)}``: ``grad = sum_k v_k f_k / (4 eps)`` and the SDF and
         feature are the vertex means (exact for linear fields, O(eps^2) otherwise). No second-order
@@ -159,13 +216,12 @@ class SDFField(nn.Module):
                 grad = (v[:, None, :] * f[..., None]).sum(0) / (4.0 * eps)
                 feat = out_feat.view(4, x.shape[0], out_feat.shape[-1]).mean(0)
                 return f.mean(0), feat, grad
-        with torch.enable_grad():
-            xg = x if x.requires_grad else x.detach().requires_grad_(True)
-            sdf, feat = self.forward(xg)
-            (grad,) = torch.autograd.grad(sdf, xg, torch.ones_like(sdf), create_graph=create_graph)
-        if not create_graph:
-            sdf, feat, grad = sdf.detach(), feat.detach(), grad.detach()
-        return sdf, feat, grad
+        with torch.autocast(x.device.type, enabled=False):
+            xn = self._normalised(x)
+            outs, grads = zip(*(b.forward_with_grad(xn, create_graph, self.mlp_fn) for b in self.branches),
+                              strict=True)
+            out, grad = self._fuse(list(outs)), self._fuse(list(grads))
+        return out[:, 0] * self.radius, out[:, 1:], grad
 
 
 _TETRA = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))

@@ -1,8 +1,10 @@
 """``torch.compile`` for the parts of a step that need no double backward, with the eager code kept beside it.
 
-On a GPU a training step of this model is bound by kernel launches (benchmarks/RESULTS.md): the radiance heads
-and the NeuS opacity are chains of small element-wise operators that inductor fuses into a few kernels. The SDF
-is left eager: its normals are differentiated twice (eikonal, curvature), which compiled graphs do not support.
+On a GPU a training step of this model is bound by kernel launches (benchmarks/RESULTS.md): the SDF MLPs, the
+radiance heads and the NeuS opacity are chains of small element-wise operators that inductor fuses into a few
+kernels. The SDF MLPs can be compiled because their input gradient (the normal) is written out in closed form
+(``fields/sdf_field.mlp_with_input_grad``): compiled graphs support one backward, not the double backward of
+``autograd.grad(create_graph=True)``. The hash grids stay outside, with their own kernels.
 Shapes change every step (the number of samples), so graphs are compiled with dynamic shapes, once.
 """
 

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 from anisdf.config import Config
 from anisdf.fields.background_field import BackgroundNeRF, EnvironmentBackground
 from anisdf.fields.radiance_field import RadianceField
-from anisdf.fields.sdf_field import SDFField
+from anisdf.fields.sdf_field import SDFField, mlp_with_input_grad
 from anisdf.model_components import losses as L
 from anisdf.model_components.compiled import Compiled
 from anisdf.model_components.neus_renderer import (
@@ -52,7 +52,9 @@ class AniSDFModel(nn.Module):
         self.alpha_fn: Callable[..., Tensor] = neus_alpha
 
     def compile_heads(self) -> None:
-        """``train.compile``: ``torch.compile`` the radiance field and the NeuS opacity (model_components/compiled)."""
+        """``train.compile``: ``torch.compile`` the SDF MLPs with their closed-form input gradient, the radiance
+        field and the NeuS opacity (model_components/compiled); the hash grids keep their own kernels."""
+        self.geometry.mlp_fn = Compiled(mlp_with_input_grad, "the SDF MLPs")
         self.color_fn = Compiled(self.appearance.forward, "the radiance field")
         self.alpha_fn = Compiled(neus_alpha, "the NeuS opacity")
 
