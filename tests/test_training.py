@@ -32,10 +32,10 @@ TINY = [
 ]
 
 
-def _trainer(scene_dir: Path, out: Path, extra: list[str] | None = None) -> Trainer:
+def _trainer(scene_dir: Path, out: Path, extra: list[str] | None = None, device: str = "cpu") -> Trainer:
     cfg = load_config("cpu-quick", TINY + (extra or []))
     scene = load_scene(scene_dir, downscale=cfg.data.downscale)
-    return Trainer(cfg, scene, out, torch.device("cpu"), progress=False)
+    return Trainer(cfg, scene, out, torch.device(device), progress=False)
 
 
 def test_training_raises_psnr_and_finds_the_surface(toy_scene, tmp_path):
@@ -197,11 +197,14 @@ def test_mixed_precision_step_trains_and_keeps_the_sdf_in_float32(toy_scene, tmp
     assert out["rgb"].dtype == out["opacity"].dtype == torch.float32
 
 
-def test_compiled_heads_give_the_eager_gradients(toy_scene, tmp_path):
-    """train.compile=true: the compiled SDF MLPs, radiance field and opacity train the same as the eager code."""
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs CUDA"))])
+def test_compiled_heads_give_the_eager_gradients(toy_scene, tmp_path, device):
+    """train.compile=true: the compiled SDF MLPs, radiance field and opacity train the same as the eager code
+    (on CUDA too, where inductor writes Triton kernels instead of C++)."""
     grads, stats = [], []
     for name, extra in (("eager", []), ("compiled", ["train.compile=true"])):
-        tr = _trainer(toy_scene, tmp_path / name, ["train.max_steps=10", *extra])
+        tr = _trainer(toy_scene, tmp_path / name, ["train.max_steps=10", *extra], device=device)
         tr.opt.step = lambda: None  # keep the gradients of the first step, with the parameters unchanged
         stats.append(tr.train_step())
         stats.append(tr.train_step())  # a second sample count: the graphs are dynamic, not re-specialised

@@ -1,8 +1,8 @@
-# Sourced by the scripts here. The device machine has torch+CUDA+Triton but not the project's other wheels:
-# carry `.whl` (trimesh, PyMCubes for its Python) and the dataset under `.data/` (both git-ignored).
+# Sourced by the scripts here. The device machine has torch+CUDA+Triton but not trimesh and PyMCubes: carry
+# `.whl` (their wheels) and `.data/` (the dataset), both made by prepare.sh and git-ignored.
 export PYTHONUNBUFFERED=1
 DATA=${DATA:-.data/bunny_plastic}
-[ -f "$DATA/transforms_train.json" ] || { echo "no dataset at $DATA: copy ../shared/data/bunny_plastic there (mkdir -p .data; echo /.data/ >> .git/info/exclude) and carry .data"; exit 1; }
+[ -f "$DATA/transforms_train.json" ] || { echo "no dataset at $DATA: run benchmarks/gpu/prepare.sh on the development machine and carry .data and .whl"; exit 1; }
 if ls .whl/*.whl >/dev/null 2>&1; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 fi
