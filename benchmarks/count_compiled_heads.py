@@ -28,12 +28,14 @@ _FUSED = re.compile(r"^\s+(?:cpp_fused_\w+\(|triton_\w+\.run\()", re.M)
 _EXTERN = re.compile(r"extern_kernels\.\w+\(")
 
 
-def _count(step: Callable[..., None], fns: tuple[Callable, ...]) -> tuple[int, int, int, int]:
-    """Eager operators, then compiled graphs, fused kernels and library calls of one ``step(*fns)``."""
+def _count(make: Callable[[], tuple], step: Callable[..., None], fns: tuple[Callable, ...]) -> tuple[int, ...]:
+    """Eager operators, then compiled graphs, fused kernels and library calls of one ``step(make(), *fns)``
+    (the inputs are made outside the count)."""
     counter = OpCounter()
+    inputs = make()
     with counter:
-        step(*fns)
-    _, codes = run_and_get_code(step, *(torch.compile(f, dynamic=True) for f in fns))
+        step(inputs, *fns)
+    _, codes = run_and_get_code(step, make(), *(torch.compile(f, dynamic=True) for f in fns))
     calls = [c[c.find("def call("):] for c in codes]
     return (sum(counter.kernels.values()), len(codes), sum(len(_FUSED.findall(c)) for c in calls),
             sum(len(_EXTERN.findall(c)) for c in calls))
@@ -52,30 +54,38 @@ def main() -> int:
     rf = RadianceField(cfg.appearance, cfg.geometry.feature_dim).to(dev)
     layers = [list(b.layers) for b in SDFField(cfg.geometry).to(dev).branches]
 
-    def heads(color, alpha) -> None:  # noqa: ANN001
-        feat = torch.randn(n, cfg.geometry.feature_dim, generator=g, device=dev, requires_grad=True)
+    def head_inputs() -> tuple[torch.Tensor, ...]:
         grad = torch.randn(n, 3, generator=g, device=dev, requires_grad=True)
-        dirs = F.normalize(torch.randn(n, 3, generator=g, device=dev), dim=-1)
-        sdf = torch.randn(n, generator=g, device=dev, requires_grad=True)
-        dt = torch.rand(n, generator=g, device=dev)
-        inv_s = torch.tensor(30.0, device=dev, requires_grad=True)
+        return (torch.randn(n, cfg.geometry.feature_dim, generator=g, device=dev, requires_grad=True), grad,
+                F.normalize(grad, dim=-1).detach(), F.normalize(torch.randn(n, 3, generator=g, device=dev), dim=-1),
+                torch.randn(n, generator=g, device=dev, requires_grad=True), torch.rand(n, generator=g, device=dev),
+                torch.tensor(30.0, device=dev, requires_grad=True))
+
+    def heads(inputs, color, alpha) -> None:  # noqa: ANN001
+        feat, grad, normal, dirs, sdf, dt, inv_s = inputs
         a = alpha(sdf, grad, dirs, dt, inv_s, 0.5)
-        rgb = color(feat, F.normalize(grad, dim=-1).detach(), dirs)["rgb"]
+        rgb = color(feat, normal, dirs)["rgb"]
         (rgb.sum() + a.sum()).backward()
 
-    def sdf_mlps(mlp) -> None:  # noqa: ANN001
+    def mlp_inputs() -> list[tuple]:  # coarse and fine branch: inputs of their own widths; weights as leaves (in
+        # training the weight-normed weights are computed once a step, outside)
+        return [(torch.randn(n, lays[0].in_features, generator=g, device=dev, requires_grad=True),
+                 [lay.weight.detach().requires_grad_(True) for lay in lays],
+                 [lay.bias.detach().requires_grad_(True) for lay in lays]) for lays in layers]
+
+    def sdf_mlps(inputs, mlp) -> None:  # noqa: ANN001
         loss = 0.0
-        for lays in layers:  # coarse and fine branch: inputs of their own widths
-            h = torch.randn(n, lays[0].in_features, generator=g, device=dev, requires_grad=True)
-            out, grad = mlp(h, [lay.weight for lay in lays], [lay.bias for lay in lays])
+        for h, weights, biases in inputs:
+            out, grad = mlp(h, weights, biases)
             loss = loss + L.eikonal_loss(grad[:, :3]) + out.sum()
         loss.backward()
 
     print(f"forward and backward, {n} points on {dev} (torch {torch.__version__})")
     print("| part | eager operators | compiled: graphs, fused kernels + library calls |\n|---|---|---|")
-    for name, step, fns in (("SDF MLPs with closed-form normals", sdf_mlps, (mlp_with_input_grad,)),
-                            ("radiance field + NeuS opacity", heads, (rf.forward, neus_alpha))):
-        eager, graphs, fused, extern = _count(step, fns)
+    for name, make, step, fns in (
+            ("SDF MLPs with closed-form normals", mlp_inputs, sdf_mlps, (mlp_with_input_grad,)),
+            ("radiance field + NeuS opacity", head_inputs, heads, (rf.forward, neus_alpha))):
+        eager, graphs, fused, extern = _count(make, step, fns)
         print(f"| {name} | {eager} | {graphs} graphs, {fused} + {extern} = {fused + extern} |")
     return 0
 
