@@ -12,7 +12,7 @@ DEV=${DEV:-cuda} WARMUP=${WARMUP:-40} STEPS=${STEPS:-60}
 nvidia-smi -L; python3 -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__)"
 stamp "tests on CUDA"
 timeout 180 python3 -m pytest -rs -p no:cacheprovider tests/test_hash_encoding_fast.py tests/test_data_rays.py \
-  tests/test_model_components.py "tests/test_training.py::test_compiled_heads_give_the_eager_gradients" \
+  tests/test_model_components.py "tests/test_training.py::test_compiled_heads_give_the_eager_gradients[cuda]" \
   > "$OUT/pytest_cuda.txt" 2>&1; tail -6 "$OUT/pytest_cuda.txt"
 stamp "what train.compile fuses"; timeout 60 python3 benchmarks/count_compiled_heads.py --device "$DEV" 2>&1 | tail -4
 best=eager; best_ms=1e9

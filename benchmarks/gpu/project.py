@@ -25,10 +25,17 @@ REF = Path(__file__).resolve().parent.parent / "gpu-h100-2026-11-23" / "train_lo
 
 
 def read(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    """Steps and times of a training log; a missing or malformed one ends the script with one line naming it."""
+    try:
+        rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        steps, times = np.array([r["step"] for r in rows], float), np.array([r["time"] for r in rows], float)
+    except OSError as err:
+        raise SystemExit(f"{path}: cannot read it ({err.strerror})") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise SystemExit(f"{path}: not an anisdf log.jsonl ({type(err).__name__}: {err})") from None
     if len(rows) < 2:
         raise SystemExit(f"{path}: fewer than two logged steps")
-    return np.array([r["step"] for r in rows], float), np.array([r["time"] for r in rows], float)
+    return steps, times
 
 
 def main(argv: list[str] | None = None) -> int:
