@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     s, t = read(args.log)
     rs, rt = read(args.reference)
     last = s[-1]
-    lo = max(s[-1] - args.window, s[0])
+    lo = max(last - args.window, s[0])
     rate = (t[-1] - np.interp(lo, s, t)) / (last - lo)
     print(f"{args.log}: step {last:.0f} after {t[-1]:.0f} s; {1e3 * rate:.1f} ms/step over steps {lo:.0f}-{last:.0f}")
     print(f"rate:   {args.steps} steps in {(t[-1] + rate * (args.steps - last)) / 60:.1f} min (projected)")
