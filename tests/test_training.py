@@ -79,6 +79,23 @@ def test_resume_continues_exactly(toy_scene, tmp_path):
         assert torch.equal(sa[k], sc[k]), k
 
 
+def test_a_time_limit_stops_says_where_and_a_resume_without_it_finishes_the_same_run(toy_scene, tmp_path, caplog):
+    """``--max-minutes`` cuts the schedule short on a slow machine: the run says so with the step it reached, and
+    lifting the limit on resume ends where an uncut run ends."""
+    a = _trainer(toy_scene, tmp_path / "a", ["train.max_steps=6"])
+    a.fit()
+    b = _trainer(toy_scene, tmp_path / "b", ["train.max_steps=6"])
+    with caplog.at_level("WARNING", logger="anisdf"):
+        cut = b.fit(max_minutes=1e-9)
+    assert cut["status"] == "time limit" and cut["step"] == 1
+    assert "time limit" in caplog.text and "step 1 of 6" in caplog.text and "--resume --max-minutes 0" in caplog.text
+    c = _trainer(toy_scene, tmp_path / "b", ["train.max_steps=6"])
+    c.load_state_dict(checkpoint.load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt"))
+    assert c.fit(max_minutes=0)["status"] == "finished"
+    for k, v in a.model.state_dict().items():
+        assert torch.equal(v, c.model.state_dict()[k]), k
+
+
 def test_resume_of_a_checkpoint_from_another_device_kind_warns_and_goes_on(toy_scene, tmp_path, caplog):
     """A CUDA run's random stream (its generator lives on the GPU) does not fit a CPU generator: the run resumes
     from the seed with a warning instead of failing."""

@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("data", help="dataset folder")
     s.add_argument("--out", required=True, help="run folder (checkpoints, logs, renders)")
     s.add_argument("--max-steps", type=int, default=None)
-    s.add_argument("--max-minutes", type=float, default=None, help="stop cleanly and save after this long")
+    s.add_argument("--max-minutes", type=float, default=None,
+                   help="stop cleanly and save after this many minutes of training in all (0: no limit)")
     s.add_argument("--device", default=None, help="auto | cpu | cuda[:N]")
     s.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/last.pt")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -259,6 +259,10 @@ class Trainer:
             bar.close()
             logf.close()
         self.save()
+        if status == "time limit" and self.state.step < max_steps:
+            log.warning("time limit of %g min reached at step %d of %d, before the learning rate finished its "
+                        "decay; `anisdf train DATA --out %s --resume --max-minutes 0` finishes the schedule",
+                        max_minutes, self.state.step, max_steps, self.out)
         if self._writer is not None:
             self._writer.flush()
         return {"status": status, "step": self.state.step, "train_seconds": self.state.train_seconds,
