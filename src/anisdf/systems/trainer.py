@@ -250,7 +250,7 @@ class Trainer:
                     self.save()
                 if cfg.train.val_every > 0 and step % cfg.train.val_every == 0:
                     self.validate()
-                if max_minutes and self.state.train_seconds >= max_minutes * 60:
+                if max_minutes and self.state.train_seconds >= max_minutes * 60 and step < max_steps:
                     status = "time limit"
                     break
         except KeyboardInterrupt:
@@ -259,7 +259,7 @@ class Trainer:
             bar.close()
             logf.close()
         self.save()
-        if status == "time limit" and self.state.step < max_steps:
+        if status == "time limit":
             log.warning("time limit of %g min reached at step %d of %d, before the learning rate finished its "
                         "decay; `anisdf train DATA --out %s --resume --max-minutes 0` finishes the schedule",
                         max_minutes, self.state.step, max_steps, self.out)
