@@ -7,8 +7,8 @@ number of kernel launches per step: a step dominated by host time is launch-boun
 ``--count`` (any device, also CPU) counts instead the operators one step dispatches that would launch a kernel
 on a GPU (views and allocations excluded), by phase: forward (with the normals' ``autograd.grad``), backward and
 optimiser (unfused on CPU, one fused kernel on CUDA); ``train.amp``'s casts are counted wherever it runs. It also
-counts reads of device values to the host (``.item()``, ``nonzero``, boolean-mask indexing), each of which waits
-for a GPU's queue to drain. It needs no GPU, so a launch budget can be tracked on any machine.
+counts reads of device values to the host (``.item()``, ``.tolist()``, ``nonzero``, boolean-mask indexing), each
+of which waits for a GPU's queue to drain. It needs no GPU, so a launch budget can be tracked on any machine.
 """
 
 from __future__ import annotations

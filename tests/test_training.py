@@ -114,16 +114,18 @@ def test_resume_of_a_checkpoint_from_another_device_kind_warns_and_goes_on(toy_s
 def test_a_step_reads_the_device_only_where_shapes_depend_on_data(toy_scene, tmp_path):
     """On a GPU every read of a device value waits for the queue to drain, and the step is launch-bound there
     (benchmarks/RESULTS.md). Forward and backward may read only the sample selections (one ``nonzero`` per march
-    chunk, the pruning and the visible set); the step's numbers come back in one read after backward."""
+    chunk, the pruning and the visible set); the step's numbers come back in one ``tolist`` after backward, and
+    the sample counts that set the next batch are known on the host. (The CPU optimiser reads its step counters;
+    CUDA's fused one does not, and is left out.)"""
     from anisdf.benchmarks.opcount import count_step
 
     tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=10", "renderer.early_stop_eps=1e-3"])
     for _ in range(3):
         tr.train_step()
     c = count_step(tr)
-    reads = {k: n for k, n in c.host_reads.items() if k[0] in ("forward", "backward")}
-    assert set(reads) == {("forward", "nonzero")}, reads
-    assert reads[("forward", "nonzero")] == 3  # one march chunk, the pruned selection, the visible samples
+    reads = {k: n for k, n in c.host_reads.items() if k[0] != "optimizer"}
+    # one march chunk, the pruned selection, the visible samples; then the step's numbers
+    assert reads == {("forward", "nonzero"): 3, ("after backward", "tolist"): 1}, reads
     assert sum(n for (phase, _), n in c.kernels.items() if phase == "backward") > 100  # the counter saw backward
 
 

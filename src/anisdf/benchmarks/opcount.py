@@ -25,7 +25,9 @@ _HOST_READS = {"_local_scalar_dense", "nonzero", "unique", "_unique2", "masked_s
 
 
 class OpCounter(TorchDispatchMode):
-    """Counts dispatched aten operators and host reads by ``(phase, name)``; ``phase`` is set from outside."""
+    """Counts dispatched aten operators and host reads by ``(phase, name)``; ``phase`` is set from outside.
+
+    ``Tensor.tolist`` reads without dispatching an operator: ``count_step`` counts it by wrapping the method."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -49,7 +51,7 @@ class OpCounter(TorchDispatchMode):
 def count_step(tr: Trainer) -> OpCounter:
     """Operators of one training step, by phase: the step's own code is run with hooks marking the phases."""
     counter = OpCounter()
-    opt_step, backward = tr.opt.step, torch.Tensor.backward
+    opt_step, backward, tolist = tr.opt.step, torch.Tensor.backward, torch.Tensor.tolist
 
     def step_marked(*a, **k):  # noqa: ANN002, ANN003, ANN202
         counter.phase = "optimizer"
@@ -62,12 +64,16 @@ def count_step(tr: Trainer) -> OpCounter:
         backward(self, *a, **k)
         counter.phase = "after backward"
 
+    def tolist_counted(self, *a, **k):  # noqa: ANN001, ANN002, ANN003, ANN202
+        counter.host_reads[(counter.phase, "tolist")] += 1  # reads the data directly: no operator is dispatched
+        return tolist(self, *a, **k)
+
     tr.opt.step = step_marked
-    torch.Tensor.backward = backward_marked
+    torch.Tensor.backward, torch.Tensor.tolist = backward_marked, tolist_counted
     try:
         with counter:
             tr.train_step()
     finally:
-        torch.Tensor.backward = backward
+        torch.Tensor.backward, torch.Tensor.tolist = backward, tolist
         del tr.opt.step
     return counter

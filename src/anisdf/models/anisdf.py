@@ -50,6 +50,8 @@ class AniSDFModel(nn.Module):
         # the radiance heads and the opacity, eager until compile_heads() (plain attributes, not submodules)
         self.color_fn: Callable[..., dict[str, Tensor]] = self.appearance.__call__
         self.alpha_fn: Callable[..., Tensor] = neus_alpha
+        # samples of the last render_rays call, full pass and marched (plain ints: reading them waits for no GPU)
+        self.last_counts: tuple[int, int] = (0, 0)
 
     def compile_heads(self) -> None:
         """``train.compile``: ``torch.compile`` the SDF MLPs with their closed-form input gradient, the radiance
@@ -130,8 +132,7 @@ class AniSDFModel(nn.Module):
             out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
             out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
         out["inv_s"] = inv_s.detach()
-        out["n_samples"] = torch.tensor(s.n)
-        out["n_marched"] = torch.tensor(n_marched)
+        self.last_counts = (s.n, n_marched)
         if train:
             out.update(_x=x, _dirs=d, _grad=grad, _normal=normal, _weights=weights, _ray_idx=s.ray_idx)
         return out

@@ -186,7 +186,7 @@ class Trainer:
                 f"(running mean {st.loss_ema:.4g}); the last good checkpoint {self.ckpt_path} is intact. "
                 "Try a lower optim.lr or loss weights.")
         self.opt.step()
-        n_samples, n_marched = int(out["n_samples"]), int(out["n_marched"])
+        n_samples, n_marched = model.last_counts
         # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4)
         scale = min(rc.samples_per_step / max(n_samples, 1), 4 * rc.samples_per_step / max(n_marched, 1))
         st.n_rays = int(min(max(st.n_rays * scale, rc.min_rays), rc.max_rays))
