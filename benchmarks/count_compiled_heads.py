@@ -64,7 +64,7 @@ def main() -> int:
     def heads(inputs, color, alpha) -> None:  # noqa: ANN001
         feat, grad, normal, dirs, sdf, dt, inv_s = inputs
         a = alpha(sdf, grad, dirs, dt, inv_s, 0.5)
-        rgb = color(feat, normal, dirs)["rgb"]
+        rgb = color(dirs, feat, normal, dirs)["rgb"]  # a unit vector stands in for the position
         (rgb.sum() + a.sum()).backward()
 
     def mlp_inputs() -> list[tuple]:  # coarse and fine branch: inputs of their own widths; weights as leaves (in

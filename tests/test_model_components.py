@@ -180,7 +180,7 @@ def test_finite_difference_normals_match_analytic_gradient():
 def test_level_masking_switches_levels_on_progressively():
     field = _sphere_field("fused")
     coarse, fine = field.branches
-    assert int(coarse.active_levels) == 4 and int(fine.active_levels) == 6  # capped by n_levels
+    assert int(coarse.active_levels) == 4 and int(fine.active_levels) == 4  # the fine set starts at level m = 4
     cfg = field.cfg
     field.set_step(0)
     assert int(coarse.active_levels) == 4
@@ -188,16 +188,40 @@ def test_level_masking_switches_levels_on_progressively():
     assert int(coarse.active_levels) == coarse.n_levels
 
 
+def test_level_schedule_is_the_releases():
+    """NOTES.md: coarse 4 -> 10 and fine 10 -> 16 active levels, one more every 1000 steps after step 5000, all
+    active by step 11000 (the first extra level at 6000, not at 5000)."""
+    cfg = load_config(None, ["geometry.log2_hashmap_size=10", "geometry.encoding_backend=torch"])
+    field = SDFField(cfg.geometry)
+    active = {}
+    for step in (0, 5000, 5999, 6000, 10999, 11000, 20000):
+        field.set_step(step)
+        active[step] = tuple(b.n_active for b in field.branches)
+    assert active == {0: (4, 10), 5000: (4, 10), 5999: (4, 10), 6000: (5, 11), 10999: (9, 15), 11000: (10, 16),
+                      20000: (10, 16)}
+
+
+@pytest.mark.parametrize("m", [6, 8, 12])
+def test_level_m_moves_the_split_between_the_grids(m):
+    """The "level m" ablation: the coarse grid holds levels 1..m and the fine grid's active set starts at m (Eq. 5),
+    whatever m is."""
+    cfg = load_config(None, [f"geometry.coarse_levels={m}", "geometry.log2_hashmap_size=10",
+                             "geometry.encoding_backend=torch"])
+    coarse, fine = SDFField(cfg.geometry).branches
+    assert coarse.n_levels == m and fine.n_levels == 16
+    assert fine.start_levels == m == coarse.n_levels
+
+
 def test_loaded_level_state_is_the_one_the_field_uses():
     """The branches keep their active level count as a Python int and a 0/1 weight per feature (no GPU read per
     query); loading a state dict must update both, or a resumed run would query the wrong levels."""
     cfg = load_config(None, ["geometry.log2_hashmap_size=12", "geometry.n_levels=8", "geometry.coarse_levels=6",
-                             "geometry.coarse_start_levels=2", "geometry.fine_start_levels=4",
+                             "geometry.coarse_start_levels=2",
                              "geometry.max_resolution=64", "geometry.encoding_backend=torch"])
     trained, fresh = SDFField(cfg.geometry), SDFField(cfg.geometry)
     for b in trained.branches:
         b.grid.table.data.normal_(0.0, 0.1)
-    trained.set_step(trained.cfg.level_start_step)  # one more level on each branch
+    trained.set_step(trained.cfg.level_start_step + trained.cfg.level_every)  # one more level on each branch
     fresh.load_state_dict(trained.state_dict())
     assert any(b.n_active > b.start_levels for b in trained.branches)  # the test loads a state that differs
     for bt, bf in zip(trained.branches, fresh.branches, strict=True):
@@ -304,3 +328,28 @@ def test_empty_inputs_and_rays_that_miss_render_background(normals):
     out = model.render_image(torch.tensor([[0.0, 0, 5]]), torch.tensor([[0.0, 0, 1]]), torch.ones(1, 3), 8)
     torch.testing.assert_close(out["rgb"], torch.ones(1, 3))
     assert float(out["opacity"]) == 0.0
+
+
+def test_colour_heads_read_the_position():
+    """Eqs. 10-11: c_view = Psi_v(x, d, n, F) and w = sigmoid(Psi_w(x, n, F)) depend on the position itself, not
+    only through the geometry feature."""
+    from anisdf.fields.radiance_field import RadianceField
+
+    cfg = load_config("cpu-quick", [])
+    torch.manual_seed(0)
+    rf = RadianceField(cfg.appearance, cfg.geometry.feature_dim)
+    n = 16
+    feat = torch.randn(1, cfg.geometry.feature_dim).expand(n, -1)
+    normal = F.normalize(torch.randn(1, 3), dim=-1).expand(n, -1)
+    dirs = F.normalize(torch.randn(1, 3), dim=-1).expand(n, -1)
+    x = (torch.rand(n, 3) * 2 - 1).requires_grad_(True)
+    out = rf(x, feat, normal, dirs)
+    assert out["c_view"].std(0).max() > 1e-4 and out["weight"].std() > 1e-4
+    (gx,) = torch.autograd.grad(out["c_view"].sum() + out["weight"].sum(), x)
+    assert gx.abs().max() > 1e-4
+
+
+def test_optimiser_weight_decay_is_the_releases():
+    """The release builds AdamW without a weight decay argument, so PyTorch's default applies (NOTES.md)."""
+    default = torch.optim.AdamW([torch.zeros(1, requires_grad=True)]).defaults["weight_decay"]
+    assert load_config(None, []).optim.weight_decay == default == 0.01

@@ -30,6 +30,12 @@ class DataConfig:
     """Training background for RGBA images: auto | white | black | random."""
     max_images: int = 0
     """Use at most this many training images (0 = all)."""
+    train_split: str = "train"
+    """train: the dataset's train split; all: every view, test views included (DTU, a geometry benchmark on which
+    NeuS and the paper train on all 49 views)."""
+    images_dir: str = ""
+    """LLFF / COLMAP / NeuS: read images from this sub-folder instead of the default (e.g. ``images_4`` for the
+    Mip-NeRF 360 outdoor scenes, ``images_2`` for the indoor ones); intrinsics follow the size on disk."""
 
 
 @dataclass
@@ -39,12 +45,14 @@ class GeometryConfig:
     n_levels: int = 16
     """L: number of levels of the fine grid (and of the single grid)."""
     coarse_levels: int = 10
-    """m: the coarse grid holds levels 1..m, the fine grid levels m..L (Eq. 4)."""
+    """m: the coarse grid holds levels 1..m, the fine grid levels m..L (Eq. 5); the fine grid starts with its first
+    m levels active, so the fine set begins where the coarse set ends (the paper's "level m" ablation moves both)."""
     coarse_start_levels: int = 4
-    fine_start_levels: int = 10
+    """Active levels of the coarse grid (of the single grid with ``kind=single``) at the start."""
     level_start_step: int = 5000
     level_every: int = 1000
-    """Levels are switched on one every ``level_every`` steps after ``level_start_step``."""
+    """One more level on each grid every ``level_every`` steps after ``level_start_step`` (the first at
+    ``level_start_step + level_every``): coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (NOTES.md)."""
     features_per_level: int = 2
     log2_hashmap_size: int = 19
     base_resolution: int = 32
@@ -56,7 +64,7 @@ class GeometryConfig:
     """Size of the geometry feature F passed to the appearance heads."""
     init_radius: float = 0.5
     fusion: str = "sum"
-    """sum (paper, Eq. 5) or mean (authors' release)."""
+    """sum (paper, Eq. 6) or mean (authors' release)."""
     normals: str = "analytic"
     """analytic (the exact gradient: closed form through the MLPs, autograd through the grids) or finite_difference
     (4-point tetrahedron, step fd_eps). Measured trade-off: benchmarks/RESULTS.md."""
@@ -95,6 +103,9 @@ class RendererConfig:
     grid_update_every: int = 16
     grid_warmup_steps: int = 256
     occupancy_threshold: float = 0.01
+    """A cell is empty when the NeuS density of any SDF value it can hold stays below this fraction of the density's
+    peak: ``|sdf| > cell diagonal + ln(4 / threshold) / inv_s`` (the logistic density is ``<= 4 e^(-s|f|)`` of
+    its peak)."""
     march_steps: int = 1024
     """Step size = sqrt(3) * 2 * radius / march_steps."""
     max_samples_per_ray: int = 1024
@@ -126,9 +137,20 @@ class LossConfig:
     eikonal: float = 0.1
     curvature: float = 1e-3
     curvature_ramp_steps: int = 5000
+    """The curvature weight ramps linearly from 0 over these steps (release: Shiny 5k)."""
+    curvature_decay: bool = False
+    """After the ramp, divide the curvature weight by the per-level scale for every level switched on since the
+    start (Neuralangelo; the release's DTU setting 'with decay')."""
+    curvature_fraction: float = 0.25
+    """Fraction of the step's samples (at least 1024) on which the curvature term is evaluated: it needs a second
+    SDF query with gradients at perturbed points. Measured full vs subset: benchmarks/RESULTS.md."""
     orientation: float = 1e-3
+    orientation_start: float = -1.0
+    """Orientation weight at step 0, ramping linearly to ``orientation`` over ``orientation_ramp_steps``
+    (release, Shiny Blender: 1e-2 -> 1e-3 over 20k steps); < 0: constant ``orientation``."""
+    orientation_ramp_steps: int = 20000
     entropy: float = 1e-2
-    """Binary cross-entropy of the accumulated opacity with itself (Eq. 15)."""
+    """Binary cross-entropy of the accumulated opacity with itself (Eq. 17)."""
     mask: float = 0.0
     """BCE between accumulated opacity and the dataset mask (DTU-style), 0 = off."""
     explode_factor: float = 50.0
@@ -141,7 +163,8 @@ class OptimConfig:
     lr_variance: float = 1e-3
     betas: tuple[float, float] = (0.9, 0.99)
     eps: float = 1e-15
-    weight_decay: float = 0.0
+    weight_decay: float = 0.01
+    """AdamW's decoupled weight decay; the release passes none, so PyTorch's default 0.01 applies."""
     warmup_steps: int = 500
     final_lr_factor: float = 0.1
 
@@ -151,7 +174,10 @@ class TrainConfig:
     seed: int = 0
     max_steps: int = 20000
     max_minutes: float = 0.0
-    """Stop cleanly after this many minutes (0 = no limit)."""
+    """Time budget of the whole run in minutes (0 = none). With a budget the schedule (level activation, cos anneal,
+    curvature and orientation ramps, learning-rate warm-up and decay) is laid on time: it advances with the fraction
+    of the budget spent, ``max_steps`` names the schedule's length in its own units, and the run ends at the deadline
+    with its schedule complete however fast the machine is. Without one it is laid on steps (bit-exact resume)."""
     device: str = "auto"
     amp: bool = False
     """bf16 autocast of the radiance heads (CUDA only; the SDF is always float32). Off by default: the H100 profile
@@ -185,6 +211,7 @@ class Config:
 
 CHOICES: dict[str, tuple[str, ...]] = {
     "data.background": ("auto", "white", "black", "random"),
+    "data.train_split": ("train", "all"),
     "geometry.kind": ("fused", "single"),
     "geometry.fusion": ("sum", "mean"),
     "geometry.normals": ("analytic", "finite_difference"),

@@ -1,4 +1,4 @@
-"""Anisotropic spherical Gaussian (ASG) encoding of the reflected direction (paper Eqs. 7-8).
+"""Anisotropic spherical Gaussian (ASG) encoding of the reflected direction (paper Eqs. 8-9).
 
 ``ASG(w | [x, y, z], [lambda, mu], xi) = xi * max(w . z, 0) * exp(-lambda (w . x)^2 - mu (w . y)^2)``
 

@@ -1,8 +1,10 @@
-"""Blended radiance fields (paper Sec. 3.3, Eqs. 9-11).
+"""Blended radiance fields (paper Sec. 3.3, Eqs. 7-12).
 
-``c_view = Psi_v(F, n, SH(d))``; ``c_ref = Psi_r(ASG(omega_r), omega_r, n.v)`` with
-``omega_r = d - 2 (d.n) n`` (Eq. 6) and ASG parameters ``lambda, mu, xi = f_par(F, n)`` (Eq. 8);
-``w = sigmoid(Psi_w(F, n))`` and ``C = w c_view + (1 - w) c_ref`` (Eq. 11).
+``c_view = Psi_v(x, SH(d), n, F)`` (Eq. 10); ``c_ref = Psi_r(ASG(omega_r), omega_r, n.v)`` (Eq. 10) with
+``omega_r = d - 2 (d.n) n`` (Eq. 7) and ASG parameters ``lambda, mu, xi = f_par(F, n)`` (Eq. 9);
+``w = sigmoid(Psi_w(x, n, F))`` (Eq. 11) and ``C = w c_view + (1 - w) c_ref`` (Eq. 12). ``x`` is the position in
+the unit sphere; the release feeds [F, n] only (NOTES.md), the paper's Eqs. 10-11 name ``x`` too, and we follow the
+paper. ``n.v`` as an extra input of ``Psi_r`` is the release's.
 Ablations: ``appearance.kind=pe`` replaces the ASG features by a positional encoding of omega_r;
 ``appearance.kind=view`` keeps the view branch only.
 """
@@ -33,10 +35,10 @@ class RadianceField(nn.Module):
         super().__init__()
         self.cfg = cfg
         geo_in = feature_dim + 3
-        self.view_mlp = mlp(geo_in + cfg.sh_degree**2, cfg.view_hidden, cfg.view_layers, 3)
+        self.view_mlp = mlp(3 + geo_in + cfg.sh_degree**2, cfg.view_hidden, cfg.view_layers, 3)
         if cfg.kind == "view":
             return
-        self.weight_mlp = mlp(geo_in, cfg.weight_hidden, cfg.weight_layers, 1)
+        self.weight_mlp = mlp(3 + geo_in, cfg.weight_hidden, cfg.weight_layers, 1)
         if cfg.kind == "blend":
             self.register_buffer("frames", asg_frames(cfg.asg_theta, cfg.asg_phi), persistent=False)
             self.n_lobes = cfg.asg_theta * cfg.asg_phi
@@ -46,13 +48,14 @@ class RadianceField(nn.Module):
             ref_in = 3 * (1 + 2 * cfg.pe_frequencies) + 1 + geo_in
         self.ref_mlp = mlp(ref_in, cfg.ref_hidden, cfg.ref_layers, 3)
 
-    def forward(self, feat: Tensor, normal: Tensor, dirs: Tensor) -> dict[str, Tensor]:
-        """Colour of points with geometry feature ``feat``, unit ``normal`` seen along unit ``dirs``."""
+    def forward(self, x: Tensor, feat: Tensor, normal: Tensor, dirs: Tensor) -> dict[str, Tensor]:
+        """Colour of points at ``x`` (in the unit sphere) with geometry feature ``feat`` and unit ``normal``, seen
+        along unit ``dirs``."""
         geo = torch.cat([feat, normal], dim=-1)
-        c_view = torch.sigmoid(self.view_mlp(torch.cat([geo, sh_encoding(dirs, self.cfg.sh_degree)], dim=-1)))
+        c_view = torch.sigmoid(self.view_mlp(torch.cat([x, geo, sh_encoding(dirs, self.cfg.sh_degree)], dim=-1)))
         if self.cfg.kind == "view":
             return {"rgb": c_view, "c_view": c_view}
-        w = torch.sigmoid(self.weight_mlp(geo))
+        w = torch.sigmoid(self.weight_mlp(torch.cat([x, geo], dim=-1)))
         d_dot_n = (dirs * normal).sum(-1, keepdim=True)
         refl = dirs - 2.0 * d_dot_n * normal
         n_dot_v = -d_dot_n

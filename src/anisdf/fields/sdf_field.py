@@ -1,12 +1,13 @@
-"""Fused-granularity SDF (paper Sec. 3.2, Eqs. 4-5).
+"""Fused-granularity SDF (paper Sec. 3.2, Eqs. 5-6).
 
-Two parallel hash grids, each with its own MLP, predict ``(SDF, F)``; the outputs are fused:
+Two parallel hash grids, each with its own MLP, predict ``(SDF, F)``; the outputs are fused (Eq. 6):
 ``SDF = SDF^c + SDF^f`` and ``F = F^c + F^f`` (``geometry.fusion=mean`` averages them, as the authors'
 release does). Following the release (NOTES.md), both grids start at the base resolution with the same
-per-level scale; the coarse grid has ``m`` levels and starts with ``coarse_start_levels`` active, the fine grid
-has ``L`` levels and starts with ``fine_start_levels`` active, and both switch on one more level every
-``level_every`` steps after ``level_start_step``. ``geometry.kind=single`` is the ablation: one grid of ``L``
-levels switched on coarse-to-fine.
+per-level scale; the coarse grid holds levels ``1..m`` and starts with ``coarse_start_levels`` active, the fine grid
+holds ``1..L`` and starts with its first ``m`` active, so that its trainable set is ``m..L`` (Eq. 5) and moves with
+``m``. Both switch on one more level every ``level_every`` steps after ``level_start_step`` (release: coarse 4 -> 10,
+fine 10 -> 16, all active at step 11000). ``geometry.kind=single`` is the ablation: one grid of ``L`` levels switched
+on coarse-to-fine.
 
 Analytic normals are computed in closed form through each MLP (:func:`mlp_with_input_grad`) and through the hash
 grid by one first-order ``autograd.grad``: training differentiates them once more for the eikonal and curvature
@@ -83,7 +84,7 @@ class SDFBranch(nn.Module):
         self.level_weights.copy_(self._weights(self.n_active))
 
     def set_step(self, step: int, cfg: GeometryConfig) -> None:
-        extra = 0 if step < cfg.level_start_step else 1 + (step - cfg.level_start_step) // max(cfg.level_every, 1)
+        extra = max(0, (step - cfg.level_start_step) // max(cfg.level_every, 1))
         n = min(self.start_levels + extra, self.n_levels)
         if n != self.n_active:
             self.n_active = n
@@ -155,7 +156,7 @@ class SDFField(nn.Module):
             s = 0.5 if cfg.fusion == "sum" else 1.0
             self.branches = nn.ModuleList([
                 SDFBranch(coarse, cfg, cfg.coarse_start_levels, s),
-                SDFBranch(fine, cfg, cfg.fine_start_levels, s),
+                SDFBranch(fine, cfg, cfg.coarse_levels, s),
             ])
         else:
             self.branches = nn.ModuleList([SDFBranch(fine, cfg, cfg.coarse_start_levels, 1.0)])
@@ -168,7 +169,7 @@ class SDFField(nn.Module):
             b.set_step(step, self.cfg)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """SDF [N] and geometry feature F [N, feature_dim] (Eq. 5).
+        """SDF [N] and geometry feature F [N, feature_dim] (Eq. 6).
 
         Always float32, also inside a bf16 autocast region: bf16's 8-bit mantissa is too coarse for a distance
         field whose zero crossing is the surface and whose gradient is the normal.
@@ -181,7 +182,7 @@ class SDFField(nn.Module):
         return x.to(torch.promote_types(x.dtype, torch.float32)) / self.radius
 
     def _fuse(self, per_branch: list[Tensor]) -> Tensor:
-        """Eq. 5 on any per-branch quantity (outputs, gradients): the sum, or the mean with ``fusion=mean``."""
+        """Eq. 6 on any per-branch quantity (outputs, gradients): the sum, or the mean with ``fusion=mean``."""
         out = per_branch[0] if len(per_branch) == 1 else per_branch[0] + per_branch[1]
         return out * 0.5 if self.cfg.kind == "fused" and self.cfg.fusion == "mean" else out
 

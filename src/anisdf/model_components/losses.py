@@ -1,4 +1,4 @@
-"""The five training losses of AniSDF (paper Sec. 3.4, Eqs. 12-16)."""
+"""The five training losses of AniSDF (paper Sec. 3.4, Eqs. 13-17; their weighted sum is Eq. 18)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from torch import Tensor
 
 
 def rgb_loss(pred: Tensor, gt: Tensor, kind: str = "mse+l1") -> Tensor:
-    """Eq. 12 (``mse``); the release adds an L1 term for object scenes and uses L1 alone on DTU."""
+    """Eq. 13 (``mse``); the release adds an L1 term for object scenes and uses L1 alone on DTU."""
     loss = pred.new_zeros(())
     if "mse" in kind:
         loss = loss + F.mse_loss(pred, gt)
@@ -18,24 +18,24 @@ def rgb_loss(pred: Tensor, gt: Tensor, kind: str = "mse+l1") -> Tensor:
 
 
 def eikonal_loss(grad: Tensor) -> Tensor:
-    """Eq. 13: ``E[(||grad f(x)|| - 1)^2]``."""
+    """Eq. 14: ``E[(||grad f(x)|| - 1)^2]``."""
     return ((grad.norm(dim=-1) - 1.0) ** 2).mean()
 
 
 def curvature_loss(normal: Tensor, normal_eps: Tensor) -> Tensor:
-    """Eq. 14 (PermutoSDF): ``(n . n_eps - 1)^2`` between unit normals at ``x`` and at a tangent step from it."""
+    """Eq. 15 (PermutoSDF): ``(n . n_eps - 1)^2`` between unit normals at ``x`` and at a tangent step from it."""
     return (((normal * normal_eps).sum(-1) - 1.0) ** 2).mean()
 
 
 def orientation_loss(weights: Tensor, normal: Tensor, dirs: Tensor, ray_idx: Tensor, n_rays: int) -> Tensor:
-    """Eq. 15 (Ref-NeRF): ``sum_i w_i max(0, n . d)^2`` per ray, averaged over rays."""
+    """Eq. 16 (Ref-NeRF): ``sum_i w_i max(0, n . d)^2`` per ray, averaged over rays."""
     per_sample = weights * torch.relu((normal * dirs).sum(-1)) ** 2
     per_ray = torch.zeros(n_rays, device=weights.device, dtype=weights.dtype).index_add_(0, ray_idx, per_sample)
     return per_ray.mean()
 
 
 def alpha_entropy_loss(opacity: Tensor, eps: float = 1e-4) -> Tensor:
-    """Eq. 16: ``BCE(alpha, alpha)``, the binary entropy of accumulated opacity, pushing it to 0 or 1."""
+    """Eq. 17: ``BCE(alpha, alpha)``, the binary entropy of accumulated opacity, pushing it to 0 or 1."""
     a = opacity.clamp(eps, 1.0 - eps)
     return -(a * torch.log(a) + (1.0 - a) * torch.log(1.0 - a)).mean()
 

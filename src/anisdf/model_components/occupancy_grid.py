@@ -2,7 +2,8 @@
 
 A binary grid over ``[-radius, radius]^3``. A cell is occupied when the SDF at a random point in the cell could
 reach the surface within the cell or leave non-negligible NeuS density there:
-``|sdf(p)| <= cell_diagonal + band / inv_s``. Each update re-evaluates a random quarter of all cells plus the
+``|sdf(p)| <= cell_diagonal + band / inv_s``, with ``band = ln(4 / renderer.occupancy_threshold)``: beyond it the
+logistic density is below that fraction of its peak. Each update re-evaluates a random quarter of all cells plus the
 cells that are currently occupied (every cell during warm-up), so an update costs a fraction of a full sweep.
 """
 

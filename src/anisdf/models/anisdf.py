@@ -35,7 +35,7 @@ class AniSDFModel(nn.Module):
         self.geometry = SDFField(cfg.geometry, radius=r.radius)
         self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim)
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
-        self.grid = OccupancyGrid(r.grid_resolution, r.radius)
+        self.grid = OccupancyGrid(r.grid_resolution, r.radius, band=math.log(4.0 / r.occupancy_threshold))
         # opaque photos without masks: what lies beyond the sphere is learned too
         self.background: nn.Module | None = None
         if learn_background:
@@ -113,7 +113,7 @@ class AniSDFModel(nn.Module):
         weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
-        col_vis = self.color_fn(feat[vis], normal[vis], d[vis])
+        col_vis = self.color_fn(x[vis] / self.radius, feat[vis], normal[vis], d[vis])
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
         opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)
@@ -151,7 +151,7 @@ class AniSDFModel(nn.Module):
     # ----------------------------------------------------------------------------------------- losses
     def losses(self, out: dict[str, Tensor], target: Tensor, mask: Tensor | None,
                generator: torch.Generator | None) -> dict[str, Tensor]:
-        """Loss dict (Eq. 17): weighted terms and their sum under ``total``."""
+        """Loss dict (Eq. 18): weighted terms and their sum under ``total``."""
         lc = self.cfg.loss
         step = self.step_int
         terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out["rgb"], target, lc.rgb)}
@@ -163,20 +163,21 @@ class AniSDFModel(nn.Module):
         if lc.eikonal > 0:
             terms["eikonal"] = L.eikonal_loss(grad)
             weights["eikonal"] = lc.eikonal
-        curv_w = lc.curvature * (min(1.0, step / lc.curvature_ramp_steps) if lc.curvature_ramp_steps > 0 else 1.0)
+        curv_w = self.curvature_weight()
         if curv_w > 0:
             x, n = out["_x"], out["_normal"]
-            k = min(x.shape[0], max(1024, x.shape[0] // 4))
+            k = min(x.shape[0], max(1024, int(x.shape[0] * lc.curvature_fraction)))
             dev = generator.device if generator is not None else x.device
             sel = torch.randperm(x.shape[0], generator=generator, device=dev)[:k].to(x.device)
             x_eps = L.tangent_perturbation(x[sel], n[sel], self.finest_cell(), generator)
             _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
             terms["curvature"] = L.curvature_loss(n[sel], F.normalize(g_eps, dim=-1))
             weights["curvature"] = curv_w
-        if lc.orientation > 0:
+        orient_w = _ramp(lc.orientation_start, lc.orientation, step, lc.orientation_ramp_steps)
+        if orient_w > 0:
             terms["orientation"] = L.orientation_loss(out["_weights"], out["_normal"], out["_dirs"],
                                                       out["_ray_idx"], target.shape[0])
-            weights["orientation"] = lc.orientation
+            weights["orientation"] = orient_w
         if lc.entropy > 0:
             terms["entropy"] = L.alpha_entropy_loss(out["opacity"])
             weights["entropy"] = lc.entropy
@@ -186,15 +187,33 @@ class AniSDFModel(nn.Module):
         terms["total"] = sum(weights[k] * terms[k] for k in weights)
         return terms
 
+    def curvature_weight(self) -> float:
+        """Eq. 15's weight: a linear ramp from 0 over ``curvature_ramp_steps``; with ``curvature_decay`` divided by the
+        per-level scale for each level the fine (or single) grid has switched on since the start (Neuralangelo)."""
+        lc = self.cfg.loss
+        w = _ramp(0.0, lc.curvature, self.step_int, lc.curvature_ramp_steps)
+        if lc.curvature_decay:
+            b = self.geometry.branches[-1]
+            w /= self.cfg.geometry.per_level_scale() ** (b.n_active - b.start_levels)
+        return w
+
     # ----------------------------------------------------------------------------------------- queries
     @torch.no_grad()
     def diffuse_color(self, x: Tensor) -> Tensor:
         """View-branch colour at ``x`` seen head-on (along -n): vertex colours for exported meshes."""
         _, feat, grad = self.geometry.with_gradient(x, create_graph=False, fd_eps=self.fd_eps())
         n = F.normalize(grad, dim=-1)
-        return self.appearance(feat, n, -n)["c_view"]
+        return self.appearance(x / self.radius, feat, n, -n)["c_view"]
 
     def param_groups(self) -> list[dict]:
         var = [self.variance.variance]
         other = [p for n, p in self.named_parameters() if not n.startswith("variance.")]
         return [{"params": other, "name": "model"}, {"params": var, "name": "variance"}]
+
+
+def _ramp(start: float, end: float, step: int, steps: int) -> float:
+    """Linear from ``start`` at step 0 to ``end`` at ``steps`` and after; a negative ``start`` or no ``steps``
+    means ``end`` throughout."""
+    if start < 0 or steps <= 0:
+        return end
+    return start + (end - start) * min(1.0, step / steps)

@@ -57,13 +57,27 @@ def parse_dataset(path: str | Path) -> ParsedScene:
     return PARSERS[detect_format(root)](root)
 
 
-def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0) -> Scene:
+def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, images_dir: str = "") -> Scene:
     """Load the dataset in folder ``path`` (format auto-detected) as a normalised :class:`Scene`.
 
     ``downscale`` divides the image size (antialiased resize; intrinsics scaled to match);
-    ``max_images`` > 0 keeps at most that many training images, evenly spread over the train split.
+    ``max_images`` > 0 keeps at most that many training images, evenly spread over the train split;
+    ``images_dir`` reads the same file names from another sub-folder (Mip-NeRF 360's ``images_4``), the intrinsics
+    following the size found on disk.
     """
-    return build_scene(parse_dataset(path), downscale=downscale, max_images=max_images)
+    parsed = parse_dataset(path)
+    if images_dir:
+        parsed.image_paths = [_other_folder(p, Path(path) / images_dir) for p in parsed.image_paths]
+    return build_scene(parsed, downscale=downscale, max_images=max_images)
+
+
+def _other_folder(image: Path, folder: Path) -> Path:
+    if not folder.is_dir():
+        raise DataError(folder, "image folder (data.images_dir) does not exist")
+    for cand in (folder / image.name, *(folder / (image.stem + e) for e in (".png", ".jpg", ".JPG", ".jpeg"))):
+        if cand.is_file():
+            return cand
+    raise DataError(folder / image.name, f"image missing (data.images_dir has no counterpart of {image.name})")
 
 
 __all__ = ["PARSERS", "ParsedScene", "detect_format", "load_scene", "parse_dataset"]
