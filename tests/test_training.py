@@ -20,7 +20,7 @@ from anisdf.systems.trainer import Trainer
 
 TINY = [
     "geometry.n_levels=8", "geometry.coarse_levels=5", "geometry.coarse_start_levels=3",
-    "geometry.fine_start_levels=5", "geometry.level_start_step=40", "geometry.level_every=20",
+    "geometry.level_start_step=40", "geometry.level_every=20",
     "geometry.log2_hashmap_size=14", "geometry.base_resolution=8", "geometry.max_resolution=128",
     "geometry.feature_dim=15", "geometry.hidden_dim=32", "geometry.encoding_backend=torch",
     "appearance.asg_theta=4", "appearance.asg_phi=8", "appearance.par_hidden=32", "appearance.ref_hidden=32",
@@ -28,7 +28,7 @@ TINY = [
     "renderer.grid_resolution=32", "renderer.march_steps=256", "renderer.samples_per_step=4096",
     "renderer.init_rays=256", "renderer.grid_warmup_steps=32", "renderer.cos_anneal_steps=100",
     "optim.warmup_steps=20", "optim.lr_variance=0.01", "loss.curvature_ramp_steps=50",
-    "train.val_every=0", "train.ckpt_every=0", "train.log_every=10", "data.downscale=1",
+    "train.val_every=0", "train.ckpt_every=0", "train.log_every=10", "data.downscale=1", "train.max_minutes=0",
 ]
 
 
@@ -42,7 +42,7 @@ def test_training_raises_psnr_and_finds_the_surface(toy_scene, tmp_path):
     tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=100"])
     first = tr.train_step()["psnr"]
     summary = tr.fit()
-    assert summary["status"] == "finished" and summary["step"] == 100
+    assert summary["status"] == "done" and summary["step"] == 100
     psnr = tr.validate()
     print(f"toy scene: psnr {first:.2f} -> {psnr:.2f} dB in {summary['train_seconds']:.1f} s")
     assert psnr > first + 4 and psnr > 20.0, (first, psnr)
@@ -79,21 +79,70 @@ def test_resume_continues_exactly(toy_scene, tmp_path):
         assert torch.equal(sa[k], sc[k]), k
 
 
-def test_a_time_limit_stops_says_where_and_a_resume_without_it_finishes_the_same_run(toy_scene, tmp_path, caplog):
-    """``--max-minutes`` cuts the schedule short on a slow machine: the run says so with the step it reached, and
-    lifting the limit on resume ends where an uncut run ends."""
-    a = _trainer(toy_scene, tmp_path / "a", ["train.max_steps=6"])
-    a.fit()
-    b = _trainer(toy_scene, tmp_path / "b", ["train.max_steps=6"])
-    with caplog.at_level("WARNING", logger="anisdf"):
-        cut = b.fit(max_minutes=1e-9)
-    assert cut["status"] == "time limit" and cut["step"] == 1
-    assert "time limit" in caplog.text and "step 1 of 6" in caplog.text and "--resume --max-minutes 0" in caplog.text
-    c = _trainer(toy_scene, tmp_path / "b", ["train.max_steps=6"])
-    c.load_state_dict(checkpoint.load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt"))
-    assert c.fit(max_minutes=0)["status"] == "finished"
-    for k, v in a.model.state_dict().items():
-        assert torch.equal(v, c.model.state_dict()[k]), k
+class _FakeClock:
+    """A machine of a chosen speed: each training step takes ``seconds_per_step`` of this clock's time."""
+
+    def __init__(self, trainer: Trainer, seconds_per_step: float) -> None:
+        self.now = 0.0
+        step = trainer.train_step
+
+        def timed_step() -> dict[str, float]:
+            self.now += seconds_per_step
+            return step()
+
+        trainer.train_step = timed_step  # type: ignore[method-assign]
+        trainer.clock = self
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.mark.parametrize("seconds_per_step,steps", [(6.0, 10), (1.5, 40)])
+def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_per_step, steps):
+    """With ``--max-minutes`` the schedule advances with the budget spent: a slow and a fast machine both end at the
+    deadline with every level on, the cos anneal done and the learning rate decayed; the fast one uses its time for
+    more steps, not fewer minutes."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    _FakeClock(tr, seconds_per_step)
+    lrs = []
+    step = tr.train_step
+    tr.train_step = lambda: (lambda st: (lrs.append(st["lr"]), st)[1])(step())  # type: ignore[method-assign]
+    summary = tr.fit()
+    assert summary["status"] == "done" and summary["step"] == steps
+    assert summary["train_seconds"] == pytest.approx(60.0) and summary["schedule_step"] == 1000
+    assert all(b.n_active == b.n_levels for b in tr.model.geometry.branches)
+    assert tr.model.cos_anneal == 1.0
+    base = tr.cfg.optim.lr
+    # decayed towards final_lr_factor = 0.1 at the deadline (the first step is the warm-up's 1%)
+    assert lrs[-1] < 0.2 * base and lrs[-1] == min(lrs[1:])
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["status"] == "done" and run["schedule"] == "time" and run["step"] == steps
+
+
+def test_a_resumed_time_budget_continues_its_schedule(toy_scene, tmp_path):
+    """Stopped half-way through its budget, a run resumes where its schedule stood (not from the start) and ends at
+    the deadline."""
+    a = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    _FakeClock(a, 6.0)
+    assert a.fit(max_steps=5)["status"] == "stopped"
+    assert a.state.schedule_step == 400 and a.state.train_seconds == pytest.approx(30.0)  # read before step 5
+    b = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    b.load_state_dict(checkpoint.load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt"))
+    _FakeClock(b, 6.0)
+    seen = []
+    step = b.train_step
+    b.train_step = lambda: (lambda st: (seen.append(st["schedule_step"]), st)[1])(step())  # type: ignore[method-assign]
+    summary = b.fit()
+    assert seen == [500, 600, 700, 800, 900]
+    assert summary["status"] == "done" and summary["step"] == 10 and summary["schedule_step"] == 1000
+
+
+def test_steps_without_a_budget_stay_bit_exact(toy_scene, tmp_path):
+    """No budget: the schedule is the step count (a stopped run's resume equals an uninterrupted run, above)."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=3"])
+    summary = tr.fit()
+    assert summary["status"] == "done" and summary["schedule_step"] == 2 and tr.state.step == 3
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["schedule"] == "steps"
 
 
 def test_resume_of_a_checkpoint_from_another_device_kind_warns_and_goes_on(toy_scene, tmp_path, caplog):

@@ -23,7 +23,8 @@ def _scene_for_run(run: Path, cfg, ck: dict[str, Any]):
     data = json.loads(info_path.read_text())["data"] if info_path.is_file() else ck.get("data")
     if not data or not Path(data).exists():
         raise AnisdfError(f"{run}: the dataset this run was trained on ({data}) is no longer there")
-    return load_scene(Path(data), downscale=cfg.data.downscale, max_images=cfg.data.max_images)
+    return load_scene(Path(data), downscale=cfg.data.downscale, max_images=cfg.data.max_images,
+                      images_dir=cfg.data.images_dir)
 
 
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
@@ -52,10 +53,13 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
         cfg = load_config(preset, overrides)
     if max_steps:
         cfg.train.max_steps = max_steps
+        if max_minutes is None and not resume:  # `--max-steps N` alone asks for N steps, not the preset's budget
+            cfg.train.max_minutes = 0.0
     if max_minutes is not None:
         cfg.train.max_minutes = max_minutes
     dev = pick_device(device or cfg.train.device)
-    scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images)
+    scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
+                       images_dir=cfg.data.images_dir)
     for w in scene.warnings:
         log.warning("warning: %s", w)
     trainer = Trainer(cfg, scene, out, dev, progress=progress)

@@ -1,5 +1,10 @@
 """Training loop: dynamic ray batches, AdamW with warm-up + exponential decay, logging, checkpoints, resume.
 
+The schedule (level activation, cos anneal, loss ramps, learning rate) reads one position, counted in the
+schedule's own steps (``train.max_steps`` long): the step itself, or, with a time budget (``train.max_minutes``), the
+fraction of the budget spent times ``max_steps``, so that the schedule always ends at the deadline whatever the
+machine's speed (:meth:`Trainer.schedule_step`).
+
 A run folder holds ``config.yaml``, ``run.json`` (dataset path), ``checkpoints/last.pt``, ``tb/`` (TensorBoard),
 ``val/`` (validation images) and ``log.jsonl``. Checkpoints are atomic and carry every random state, so
 ``--resume`` continues exactly where an uninterrupted run would be (same seed, same result on CPU).
@@ -24,6 +29,7 @@ from anisdf.config import Config, config_from_dict
 from anisdf.data.rays import RayDataset, eval_background
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.export.atomic import write_text_atomic
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.systems.checkpoint import atomic_save, load_checkpoint
 
@@ -62,6 +68,8 @@ class TrainState:
     n_rays: int = 1024
     train_seconds: float = 0.0
     loss_ema: float = 0.0
+    schedule_step: int = 0
+    """Position in the schedule (see the module docstring); never moves back, also when a budget is raised."""
 
 
 class Trainer:
@@ -95,7 +103,8 @@ class Trainer:
                                      fused=device.type == "cuda")
         self.base_lrs = [g["lr"] for g in self.opt.param_groups]
         self.state = TrainState(n_rays=cfg.renderer.init_rays)
-        self.train_data = RayDataset(scene, "train", device=device, background=cfg.data.background)
+        self.train_data = RayDataset(scene, cfg.data.train_split, device=device, background=cfg.data.background)
+        self.clock = time.perf_counter  # the time budget's clock (tests replace it)
         self.ckpt_path = self.out / "checkpoints" / "last.pt"
         self._writer = None
 
@@ -116,14 +125,33 @@ class Trainer:
     def load_state_dict(self, ck: dict[str, Any]) -> None:
         self.model.load_state_dict(ck["model"])
         self.opt.load_state_dict(ck["optimizer"])
-        self.state = TrainState(**ck["state"])
+        # checkpoints written before the schedule position was kept: it was the step
+        self.state = TrainState(**{"schedule_step": ck["state"]["step"], **ck["state"]})
         try:
             self.gen.set_state(ck["generator"])
         except (RuntimeError, ValueError):  # written on another kind of device: its random stream does not fit
             log.warning("the checkpoint was written on another kind of device; random draws restart from the "
                         "seed, so this resumed run is not bit-identical to an uninterrupted one")
         torch.set_rng_state(ck["torch_rng"])
-        self.model.set_step(self.state.step)
+        self.model.set_step(self.schedule_step())
+
+    @property
+    def budget_seconds(self) -> float:
+        return max(self.cfg.train.max_minutes, 0.0) * 60.0
+
+    def schedule_step(self) -> int:
+        """The schedule's position: the step, or with a time budget ``max_steps * seconds spent / budget`` (capped at
+        ``max_steps``, and never below an earlier position)."""
+        st, budget = self.state, self.budget_seconds
+        if budget <= 0:
+            return st.step
+        pos = min(self.cfg.train.max_steps, int(st.train_seconds / budget * self.cfg.train.max_steps))
+        return max(pos, st.schedule_step)
+
+    def schedule_done(self) -> bool:
+        if self.budget_seconds > 0:
+            return self.state.train_seconds >= self.budget_seconds
+        return self.state.step >= self.cfg.train.max_steps
 
     def save(self) -> None:
         for p in self.model.parameters():
@@ -132,12 +160,16 @@ class Trainer:
                                        f"{self.ckpt_path}")
         atomic_save(self.state_dict(), self.ckpt_path)
 
-    def write_run_files(self) -> None:
+    def write_run_files(self, status: str = "running") -> None:
+        """``config.yaml`` and ``run.json`` (dataset, preset, normalisation, and the run's status: running, done,
+        interrupted)."""
         self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.yaml").write_text(yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
-        (self.out / "run.json").write_text(json.dumps({
+        write_text_atomic(self.out / "config.yaml", yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
+        write_text_atomic(self.out / "run.json", json.dumps({
             "data": str(Path(self.scene.root).resolve()), "format": self.scene.format,
             "preset": self.cfg.preset, "to_world": np.asarray(self.scene.to_world).tolist(),
+            "status": status, "step": self.state.step, "schedule_step": self.state.schedule_step,
+            "schedule": "time" if self.budget_seconds > 0 else "steps", "train_seconds": self.state.train_seconds,
         }, indent=2))
 
     @property
@@ -153,12 +185,13 @@ class Trainer:
         st, cfg, model = self.state, self.cfg, self.model
         if not model.training:  # train() walks every submodule; validation is what switches it off
             model.train()
-        model.set_step(st.step)
+        st.schedule_step = self.schedule_step()
+        model.set_step(st.schedule_step)
         rc = cfg.renderer
         if st.step % rc.grid_update_every == 0:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
             model.update_grid(self.gen, full=warm)
-        f = lr_factor(st.step, cfg)
+        f = lr_factor(st.schedule_step, cfg)
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
         batch = self.train_data.sample(st.n_rays, self.gen)
@@ -193,7 +226,7 @@ class Trainer:
         st.loss_ema = value if st.loss_ema == 0 else 0.98 * st.loss_ema + 0.02 * value
         st.step += 1
         stats.update(psnr=psnr_from_mse(mse_val), n_samples=n_samples, n_rays=batch.origins.shape[0],
-                     inv_s=inv_s, lr=self.opt.param_groups[0]["lr"])
+                     inv_s=inv_s, lr=self.opt.param_groups[0]["lr"], schedule_step=st.schedule_step)
         return stats
 
     @torch.no_grad()
@@ -211,35 +244,45 @@ class Trainer:
 
     # ----------------------------------------------------------------------------------------- loop
     def fit(self, max_steps: int | None = None, max_minutes: float | None = None) -> dict[str, Any]:
+        """Train until the schedule is done: ``train.max_steps`` steps, or with a time budget until the budget is
+        spent (``max_minutes`` overrides the config's). ``max_steps`` stops earlier, at that step, leaving the schedule
+        as it is (``stopped``; a resume goes on). Ctrl-C stops after the current step (``interrupted``). Either way
+        the last checkpoint is written and ``run.json`` gives the status (``done`` once the schedule completed)."""
         from tqdm import tqdm
 
         cfg = self.cfg
-        max_steps = max_steps or cfg.train.max_steps
-        max_minutes = cfg.train.max_minutes if max_minutes is None else max_minutes
+        if max_minutes is not None:
+            cfg.train.max_minutes = max_minutes
+        timed = self.budget_seconds > 0
         self.write_run_files()
-        start_step = self.state.step
-        t_start = time.perf_counter()
+        t_start = self.clock()
         t0_seconds = self.state.train_seconds
-        bar = tqdm(total=max_steps, initial=start_step, disable=not self.progress, dynamic_ncols=True,
-                   desc="train", unit="step")
-        status = "finished"
+        total = cfg.train.max_steps
+        desc = f"train ({cfg.train.max_minutes:g} min budget)" if timed else "train"
+        bar = tqdm(total=total, initial=min(self.state.schedule_step, total), disable=not self.progress,
+                   dynamic_ncols=True, desc=desc, unit="step")
+        status = "done"
         last_stats: dict[str, float] = {}
         sps_window: list[tuple[float, int]] = []
         logf = (self.out / "log.jsonl").open("a")
         try:
-            while self.state.step < max_steps:
-                t = time.perf_counter()
+            while not self.schedule_done():
+                if max_steps and self.state.step >= max_steps:
+                    status = "stopped"
+                    break
+                t = self.clock()
                 stats = self.train_step()
-                dt = time.perf_counter() - t
-                self.state.train_seconds = t0_seconds + (time.perf_counter() - t_start)
+                dt = self.clock() - t
+                self.state.train_seconds = t0_seconds + (self.clock() - t_start)
                 sps_window = (sps_window + [(dt, stats["n_samples"])])[-20:]
                 sps = sum(n for _, n in sps_window) / max(sum(d for d, _ in sps_window), 1e-9)
                 stats["samples_per_s"] = sps
                 last_stats = stats
                 step = self.state.step
-                bar.update(1)
+                bar.update(min(self.state.schedule_step, total) - bar.n if timed else 1)
                 bar.set_postfix(loss=f"{stats['total']:.4f}", psnr=f"{stats['psnr']:.2f}",
-                                samples_s=f"{sps / 1e3:.1f}k", rays=stats["n_rays"], refresh=False)
+                                samples_s=f"{sps / 1e3:.1f}k", rays=stats["n_rays"],
+                                **({"step": step} if timed else {}), refresh=False)
                 if step % cfg.train.log_every == 0 or step == 1:
                     for k, v in stats.items():
                         self.writer.add_scalar(f"train/{k}", v, step)
@@ -250,23 +293,24 @@ class Trainer:
                     self.save()
                 if cfg.train.val_every > 0 and step % cfg.train.val_every == 0:
                     self.validate()
-                if max_minutes and self.state.train_seconds >= max_minutes * 60 and step < max_steps:
-                    status = "time limit"
-                    break
         except KeyboardInterrupt:
             status = "interrupted"
         finally:
             bar.close()
             logf.close()
+        if status == "done" and timed:  # the last step ran at the deadline: the schedule stands at its end
+            self.state.schedule_step = total
+            self.model.set_step(total)
         self.save()
-        if status == "time limit":
-            log.warning("time limit of %g min reached at step %d of %d, before the learning rate finished its "
-                        "decay; `anisdf train DATA --out %s --resume --max-minutes 0` finishes the schedule",
-                        max_minutes, self.state.step, max_steps, self.out)
+        self.write_run_files(status)
+        if timed and status == "done":
+            log.info("time budget of %g min spent: %d steps, schedule complete", cfg.train.max_minutes,
+                     self.state.step)
         if self._writer is not None:
             self._writer.flush()
         return {"status": status, "step": self.state.step, "train_seconds": self.state.train_seconds,
-                "checkpoint": str(self.ckpt_path), **{k: last_stats[k] for k in ("psnr", "total") if k in last_stats}}
+                "schedule_step": self.state.schedule_step, "checkpoint": str(self.ckpt_path),
+                **{k: last_stats[k] for k in ("psnr", "total") if k in last_stats}}
 
 
 def load_run(run_dir: Path, device: torch.device | str = "cpu") -> tuple[Config, AniSDFModel, dict[str, Any]]:
