@@ -1,23 +1,32 @@
-"""Dataclass configuration, YAML presets and ``key=value`` dotted overrides.
+"""Run configuration: the dataclasses below are the schema; OmegaConf's structured configs do the rest.
 
-A run is described by one :class:`Config`. ``load_config("nerf-synthetic", ["geometry.kind=single"])``
-starts from the defaults below, applies the preset file ``presets/<name>.yaml`` and then the
-overrides, checking every key and converting every value to the field's type.
+A run is described by one :class:`Config`. ``load_config("nerf-synthetic", ["geometry.kind=single"])`` starts from
+the defaults below and merges into them, with OmegaConf, the preset file ``presets/<name>.yaml`` and then the
+``key=value`` overrides: OmegaConf rejects unknown keys, converts every value to its field's type and holds the
+choices to their ``Literal`` types. The result is a plain :class:`Config` again (cheap to read, picklable). This
+module adds only the spellings OmegaConf does not read (``2**18`` or ``1e3`` for an int, ``(0.9, 0.99)`` for a
+tuple) and turns OmegaConf's errors into one-line :class:`AnisdfError` messages.
 Defaults follow the paper (Sec. 4.1) and the authors' release (see NOTES.md).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-import types
+import operator
+import re
 import typing
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException, ValidationError
 
 from anisdf.errors import AnisdfError
 
@@ -26,11 +35,11 @@ from anisdf.errors import AnisdfError
 class DataConfig:
     downscale: float = 1.0
     """Divide image width and height by this factor when loading."""
-    background: str = "auto"
+    background: Literal["auto", "white", "black", "random"] = "auto"
     """Training background for RGBA images: auto | white | black | random."""
     max_images: int = 0
     """Use at most this many training images (0 = all)."""
-    train_split: str = "train"
+    train_split: Literal["train", "all"] = "train"
     """train: the dataset's train split; all: every view, test views included (DTU, a geometry benchmark on which
     NeuS and the paper train on all 49 views)."""
     images_dir: str = ""
@@ -40,7 +49,7 @@ class DataConfig:
 
 @dataclass
 class GeometryConfig:
-    kind: str = "fused"
+    kind: Literal["fused", "single"] = "fused"
     """fused: coarse + fine hash grids in parallel (Sec. 3.2); single: one coarse-to-fine grid (ablation)."""
     n_levels: int = 16
     """L: number of levels of the fine grid (and of the single grid)."""
@@ -63,14 +72,14 @@ class GeometryConfig:
     feature_dim: int = 64
     """Size of the geometry feature F passed to the appearance heads."""
     init_radius: float = 0.5
-    fusion: str = "sum"
+    fusion: Literal["sum", "mean"] = "sum"
     """sum (paper, Eq. 6) or mean (authors' release)."""
-    normals: str = "analytic"
+    normals: Literal["analytic", "finite_difference"] = "analytic"
     """analytic (the exact gradient: closed form through the MLPs, autograd through the grids) or finite_difference
     (4-point tetrahedron, step fd_eps). Measured trade-off: benchmarks/RESULTS.md."""
     fd_eps: float = 0.0
     """Finite-difference step; <= 0 follows the cell size of the finest active level (Neuralangelo)."""
-    encoding_backend: str = "auto"
+    encoding_backend: Literal["auto", "torch", "fast"] = "auto"
     """auto | torch | fast: hash-grid implementation."""
 
     def per_level_scale(self) -> float:
@@ -79,7 +88,7 @@ class GeometryConfig:
 
 @dataclass
 class AppearanceConfig:
-    kind: str = "blend"
+    kind: Literal["blend", "pe", "view"] = "blend"
     """blend: view + ASG reflection + weight field (Sec. 3.3); pe: positional encoding of the reflected
     direction instead of ASG (ablation); view: view branch only (ablation)."""
     sh_degree: int = 4
@@ -118,7 +127,7 @@ class RendererConfig:
     min_rays: int = 256
     max_rays: int = 8192
     init_rays: int = 1024
-    background_model: str = "nerf"
+    background_model: Literal["nerf", "environment"] = "nerf"
     """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360 scenes) or
     environment (a colour per direction)."""
     background_samples: int = 32
@@ -132,7 +141,7 @@ class RendererConfig:
 
 @dataclass
 class LossConfig:
-    rgb: str = "mse+l1"
+    rgb: Literal["mse", "l1", "mse+l1"] = "mse+l1"
     """mse | l1 | mse+l1."""
     eikonal: float = 0.1
     curvature: float = 1e-3
@@ -209,107 +218,88 @@ class Config:
         return dataclasses.asdict(self)
 
 
-CHOICES: dict[str, tuple[str, ...]] = {
-    "data.background": ("auto", "white", "black", "random"),
-    "data.train_split": ("train", "all"),
-    "geometry.kind": ("fused", "single"),
-    "geometry.fusion": ("sum", "mean"),
-    "geometry.normals": ("analytic", "finite_difference"),
-    "renderer.background_model": ("nerf", "environment"),
-    "geometry.encoding_backend": ("auto", "torch", "fast"),
-    "appearance.kind": ("blend", "pe", "view"),
-    "loss.rgb": ("mse", "l1", "mse+l1"),
-}
-
-
 def preset_names() -> list[str]:
     files = resources.files("anisdf").joinpath("presets").iterdir()
     return sorted(p.name[: -len(".yaml")] for p in files if p.name.endswith(".yaml"))
 
 
-def _convert(value: Any, tp: Any, key: str) -> Any:
-    origin = typing.get_origin(tp)
-    try:
-        if tp is bool:
-            if isinstance(value, str):
-                low = value.lower()
-                if low in ("1", "true", "yes", "on"):
-                    return True
-                if low in ("0", "false", "no", "off"):
-                    return False
-                raise ValueError(value)
-            return bool(value)
-        if tp is int:
-            if isinstance(value, str) and "**" in value:
-                base, exp = value.split("**")
-                return int(base) ** int(exp)
-            f = float(value)
-            if f != int(f):
-                raise ValueError(value)
-            return int(f)
-        if tp is float:
-            return float(value)
-        if tp is str:
-            return str(value)
-        if origin is tuple:
-            if isinstance(value, str):
-                value = yaml.safe_load(value.replace("(", "[").replace(")", "]"))
-            args = typing.get_args(tp)
-            if len(value) != len(args):
-                raise ValueError(value)
-            return tuple(_convert(v, a, key) for v, a in zip(value, args, strict=True))
-        if origin in (types.UnionType, typing.Union):
+_hints = functools.cache(typing.get_type_hints)
+
+
+def _hint(key: str) -> Any:
+    """The schema's type for a dotted key; None for an unknown key (OmegaConf reports it)."""
+    tp: Any = Config
+    for part in key.split("."):
+        tp = _hints(tp).get(part) if dataclasses.is_dataclass(tp) else None
+    return tp
+
+
+def _spelling(value: Any, tp: Any) -> Any:
+    """Spellings OmegaConf does not read: ``(a, b)`` or ``"[a, b]"`` for a tuple, ``2**18``, ``1e3`` or ``2.0`` for an
+    int (any other float is left for OmegaConf to refuse)."""
+    if isinstance(value, str) and typing.get_origin(tp) is tuple and re.fullmatch(r"\s*[(\[].*[)\]]\s*", value):
+        return _parse("[" + value.strip()[1:-1] + "]")
+    if tp is int and isinstance(value, str | float):
+        base, power, exp = str(value).partition("**")
+        try:
+            number = float(base) ** int(exp) if power else float(value)
+        except (ValueError, OverflowError):
             return value
-    except (TypeError, ValueError):
-        raise AnisdfError(f"config key '{key}': cannot read {value!r} as {getattr(tp, '__name__', tp)}") from None
+        return int(number) if number.is_integer() else value
     return value
 
 
-def set_key(cfg: Config, key: str, value: Any) -> None:
-    """Set a dotted ``key`` (e.g. ``geometry.n_levels``) with type conversion and validation."""
-    parts = key.split(".")
-    obj: Any = cfg
-    for p in parts[:-1]:
-        if not dataclasses.is_dataclass(obj) or not hasattr(obj, p):
-            raise AnisdfError(f"unknown config key '{key}'")
-        obj = getattr(obj, p)
-    name = parts[-1]
-    fields = {f.name: f for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else {}
-    if name not in fields or dataclasses.is_dataclass(getattr(obj, name)):
-        raise AnisdfError(f"unknown config key '{key}' (see `anisdf train --help-config`)")
-    hints = typing.get_type_hints(type(obj))
-    converted = _convert(value, hints[name], key)
-    if key in CHOICES and converted not in CHOICES[key]:
-        raise AnisdfError(f"config key '{key}' must be one of {', '.join(CHOICES[key])}, not {converted!r}")
-    setattr(obj, name, converted)
+def _parse(text: str) -> Any:
+    """An override's value as YAML reads it (``true``, ``64``, ``[0.9, 0.99]``), else the text itself."""
+    try:
+        return yaml.safe_load(text) if text.strip() else text
+    except yaml.YAMLError:
+        return text
 
 
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, key + "."))
+def _prepare(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    return {k: _prepare(v, f"{prefix}{k}.") if isinstance(v, dict) else _spelling(v, _hint(f"{prefix}{k}"))
+            for k, v in d.items()}
+
+
+@contextmanager
+def _errors(where: str = "") -> Iterator[None]:
+    """Turn OmegaConf's exceptions into one-line :class:`AnisdfError` messages naming the key."""
+    try:
+        yield
+    except OmegaConfBaseException as e:
+        key = e.full_key or ""
+        tp = _hint(key) if key else None
+        if isinstance(e, ConfigAttributeError | ConfigKeyError):
+            msg = f"unknown config key '{key}'"
+        elif dataclasses.is_dataclass(tp):
+            msg = f"config key '{key}' is a section; set its keys, e.g. {key}.{dataclasses.fields(tp)[0].name}=..."
+        elif typing.get_origin(tp) is Literal:
+            msg = f"config key '{key}' must be one of {', '.join(typing.get_args(tp))}, not {e.value!r}"
+        elif isinstance(e, ValidationError) and tp is not None:
+            msg = f"config key '{key}': cannot read {e.value!r} as {tp.__name__ if isinstance(tp, type) else tp}"
         else:
-            out[key] = v
-    return out
+            msg = f"config: {str(e).splitlines()[0]}"
+        raise AnisdfError(where + msg) from None
 
 
-def apply_dict(cfg: Config, d: dict[str, Any]) -> Config:
-    for key, value in _flatten(d).items():
-        if key == "preset":
-            cfg.preset = str(value)
-            continue
-        set_key(cfg, key, value)
-    return cfg
+def set_key(cfg: Config, key: str, value: Any) -> None:
+    """Set a dotted ``key`` (e.g. ``geometry.n_levels``) of ``cfg`` in place, converted and checked by OmegaConf."""
+    node = OmegaConf.structured(cfg)
+    with _errors():
+        OmegaConf.update(node, key, _spelling(value, _hint(key)), merge=True)
+    parent, _, name = key.rpartition(".")
+    value = operator.attrgetter(key)(OmegaConf.to_object(node))
+    setattr(operator.attrgetter(parent)(cfg) if parent else cfg, name, value)
 
 
 def load_config(preset: str | None = None, overrides: list[str] | None = None) -> Config:
-    """Defaults, then the preset (a name or a YAML path), then ``key=value`` overrides."""
-    cfg = Config()
+    """Defaults, then the preset (a name or a YAML path), then ``key=value`` overrides, merged by OmegaConf."""
+    node = OmegaConf.structured(Config)
     if preset and preset != "default":
         path = Path(preset)
-        if path.suffix in (".yaml", ".yml"):
+        is_path = path.suffix in (".yaml", ".yml")
+        if is_path:
             if not path.is_file():
                 raise AnisdfError(f"{path}: preset file not found")
             text = path.read_text()
@@ -321,17 +311,23 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         try:
             data = yaml.safe_load(text) or {}
         except yaml.YAMLError as e:
-            raise AnisdfError(f"preset {preset}: invalid YAML ({e})") from None
-        apply_dict(cfg, data)
-        cfg.preset = path.stem if path.suffix in (".yaml", ".yml") else preset
+            raise AnisdfError(f"preset {preset}: invalid YAML ({' '.join(str(e).split())})") from None
+        if not isinstance(data, dict):
+            raise AnisdfError(f"preset {preset}: expected a mapping of config sections, not {type(data).__name__}")
+        with _errors(f"preset {preset}: "):
+            node = OmegaConf.merge(node, _prepare(data))
+        node.preset = path.stem if is_path else preset
     for item in overrides or []:
-        if "=" not in item:
+        key, eq, value = item.partition("=")
+        if not eq:
             raise AnisdfError(f"override '{item}' is not of the form key=value")
-        key, value = item.split("=", 1)
-        set_key(cfg, key.strip(), yaml.safe_load(value) if value.strip() else value)
-    return cfg
+        with _errors():
+            OmegaConf.update(node, key.strip(), _spelling(_parse(value), _hint(key.strip())), merge=True)
+    return typing.cast(Config, OmegaConf.to_object(node))
 
 
 def config_from_dict(d: dict[str, Any]) -> Config:
     """Rebuild a config saved with :meth:`Config.to_dict` (e.g. from a checkpoint)."""
-    return apply_dict(Config(), d)
+    with _errors():
+        node = OmegaConf.merge(OmegaConf.structured(Config), _prepare(d))
+    return typing.cast(Config, OmegaConf.to_object(node))

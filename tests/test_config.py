@@ -1,0 +1,163 @@
+"""Config: defaults, preset then overrides, the spellings accepted, one-line errors, and the checkpoint round trip."""
+
+from __future__ import annotations
+
+import pickle
+from importlib import resources
+
+import pytest
+import yaml
+
+from anisdf.config import Config, config_from_dict, load_config, preset_names, set_key
+from anisdf.errors import AnisdfError
+
+
+def _error(preset: str | None = None, overrides: list[str] | None = None) -> str:
+    with pytest.raises(AnisdfError) as info:
+        load_config(preset, overrides)
+    msg = str(info.value)
+    assert "\n" not in msg, msg
+    return msg
+
+
+def test_defaults_are_a_plain_config():
+    cfg = load_config()
+    assert type(cfg) is Config and type(cfg.geometry).__name__ == "GeometryConfig"
+    assert cfg == Config() == load_config("default")
+    assert cfg.preset == "default" and cfg.geometry.kind == "fused" and cfg.appearance.kind == "blend"
+    assert cfg.renderer.samples_per_step == 2**18 and cfg.optim.betas == (0.9, 0.99)
+    assert pickle.loads(pickle.dumps(cfg)) == cfg
+
+
+def test_preset_then_overrides_in_order(tmp_path):
+    cfg = load_config("cpu-quick")
+    assert cfg.preset == "cpu-quick" and cfg.data.downscale == 2.0 and cfg.geometry.n_levels == 12
+    assert cfg.appearance.asg_theta == 4 and cfg.geometry.kind == "fused"  # untouched keys keep their defaults
+    cfg = load_config("cpu-quick", ["data.downscale=1", "geometry.n_levels=9", "geometry.n_levels=7"])
+    assert cfg.data.downscale == 1.0 and isinstance(cfg.data.downscale, float)
+    assert cfg.geometry.n_levels == 7  # the last override wins
+    assert cfg.geometry.coarse_levels == 8  # from the preset
+    path = tmp_path / "mine.yaml"
+    path.write_text("geometry:\n  kind: single\nloss:\n  rgb: l1\n")
+    cfg = load_config(str(path), ["loss.rgb=mse"])
+    assert cfg.preset == "mine" and cfg.geometry.kind == "single" and cfg.loss.rgb == "mse"
+
+
+@pytest.mark.parametrize("name", preset_names())
+def test_every_preset_file_loads(name):
+    files = [p.name for p in resources.files("anisdf").joinpath("presets").iterdir() if p.name.endswith(".yaml")]
+    assert sorted(f[: -len(".yaml")] for f in files) == preset_names()
+    text = resources.files("anisdf").joinpath("presets", f"{name}.yaml").read_text()
+    cfg = load_config(name)
+    assert cfg.preset == name and cfg != Config()
+    for section, values in yaml.safe_load(text).items():
+        for key, value in values.items():
+            assert getattr(getattr(cfg, section), key) == value, f"{section}.{key}"
+
+
+def test_choices_round_trip_as_plain_strings():
+    cfg = load_config(None, ["data.background=random", "geometry.kind=single", "geometry.fusion=mean",
+                             "geometry.normals=finite_difference", "geometry.encoding_backend=torch",
+                             "appearance.kind=pe", "renderer.background_model=environment", "loss.rgb=mse+l1",
+                             "optim.betas=(0.8, 0.95)"])
+    d = cfg.to_dict()
+    assert d["geometry"]["kind"] == "single" and type(d["geometry"]["kind"]) is str
+    assert d["appearance"]["kind"] == "pe" and d["loss"]["rgb"] == "mse+l1" and d["optim"]["betas"] == (0.8, 0.95)
+    assert config_from_dict(d) == cfg
+    assert config_from_dict(yaml.safe_load(yaml.safe_dump(d))) == cfg  # through the run's config.yaml
+    assert cfg.geometry.kind == "single" and cfg.geometry.kind != "fused"
+
+
+@pytest.mark.parametrize("spelling", ["(0.8,0.95)", "( 0.8, 0.95 )", "[0.8, 0.95]"])
+def test_a_tuple_field_reads_parentheses_and_lists(spelling):
+    assert load_config(None, [f"optim.betas={spelling}"]).optim.betas == (0.8, 0.95)
+    cfg = Config()
+    set_key(cfg, "optim.betas", spelling)  # the resume path hands over the raw text
+    assert cfg.optim.betas == (0.8, 0.95)
+
+
+@pytest.mark.parametrize(("text", "value"), [("true", True), ("false", False), ("True", True), ("yes", True),
+                                             ("off", False), ("1", True), ("0", False)])
+def test_bool_strings(text, value):
+    assert load_config(None, [f"train.amp={text}"]).train.amp is value
+    cfg = Config()
+    set_key(cfg, "train.amp", text)
+    assert cfg.train.amp is value
+
+
+@pytest.mark.parametrize(("text", "value"), [("1e3", 1000), ("2**14", 16384), ("2.0", 2), ("4096", 4096)])
+def test_int_spellings(text, value):
+    cfg = load_config(None, [f"renderer.samples_per_step={text}"])
+    assert cfg.renderer.samples_per_step == value and type(cfg.renderer.samples_per_step) is int
+
+
+def test_int_spellings_in_a_preset_file(tmp_path):
+    path = tmp_path / "big.yaml"
+    path.write_text("renderer:\n  samples_per_step: 2**19\n  max_rays: 1.6e4\n")
+    cfg = load_config(str(path))
+    assert cfg.renderer.samples_per_step == 2**19 and cfg.renderer.max_rays == 16000
+
+
+def test_set_key_changes_one_value_in_place():
+    cfg = load_config("cpu-quick")
+    train = cfg.train
+    set_key(cfg, "train.max_minutes", "5")
+    set_key(cfg, "train.max_steps", "2e3")
+    assert train.max_minutes == 5.0 and train.max_steps == 2000 and cfg.train is train
+    assert cfg.geometry == load_config("cpu-quick").geometry
+    with pytest.raises(AnisdfError, match="unknown config key 'train.bogus'"):
+        set_key(cfg, "train.bogus", "1")
+    with pytest.raises(AnisdfError, match="must be one of fused, single"):
+        set_key(cfg, "geometry.kind", "double")
+    assert cfg.geometry.kind == "fused"
+
+
+def test_unknown_key():
+    msg = _error(None, ["geometry.nope=1"])
+    assert msg == "unknown config key 'geometry.nope'"  # no pointer to a --help-config that does not exist
+    assert _error(None, ["nope.x=1"]) == "unknown config key 'nope'"
+    assert "geometry.kind=" in _error(None, ["geometry=1"])  # a section is not a value
+
+
+def test_value_that_cannot_be_converted_names_key_value_and_type():
+    assert _error(None, ["geometry.n_levels=many"]) == "config key 'geometry.n_levels': cannot read 'many' as int"
+    assert _error(None, ["geometry.n_levels=1.5"]) == "config key 'geometry.n_levels': cannot read 1.5 as int"
+    assert _error(None, ["loss.eikonal=abc"]) == "config key 'loss.eikonal': cannot read 'abc' as float"
+    assert _error(None, ["train.amp=maybe"]) == "config key 'train.amp': cannot read 'maybe' as bool"
+    msg = _error(None, ["optim.betas=(0.9,0.99,0.999)"])
+    assert msg == "config key 'optim.betas': cannot read [0.9, 0.99, 0.999] as tuple[float, float]"
+
+
+def test_value_outside_the_choices_lists_them():
+    msg = _error(None, ["appearance.kind=asg2"])
+    assert msg == "config key 'appearance.kind' must be one of blend, pe, view, not 'asg2'"
+    assert "mse, l1, mse+l1" in _error(None, ["loss.rgb=l2"])
+
+
+def test_override_without_equals():
+    assert _error(None, ["geometry.kind"]) == "override 'geometry.kind' is not of the form key=value"
+
+
+def test_unknown_preset_lists_the_presets():
+    msg = _error("nope")
+    assert msg.startswith("unknown preset 'nope'") and all(name in msg for name in preset_names())
+    assert "not found" in _error("/nonexistent/mine.yaml")
+
+
+def test_bad_preset_files_name_the_preset(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("geometry:\n  kind: [single\n")
+    assert "invalid YAML" in _error(str(bad))
+    bad.write_text("- geometry\n")
+    assert "expected a mapping" in _error(str(bad))
+    bad.write_text("geometry:\n  kind: double\n")
+    assert _error(str(bad)) == f"preset {bad}: config key 'geometry.kind' must be one of fused, single, not 'double'"
+    bad.write_text("geometry:\n  bogus: 1\n")
+    assert "unknown config key 'geometry.bogus'" in _error(str(bad))
+
+
+def test_a_saved_config_with_a_bad_value_is_refused():
+    d = Config().to_dict()
+    d["loss"]["rgb"] = "l2"
+    with pytest.raises(AnisdfError, match="config key 'loss.rgb' must be one of"):
+        config_from_dict(d)
