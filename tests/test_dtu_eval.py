@@ -67,6 +67,20 @@ def test_sampling_and_thinning() -> None:
     np.testing.assert_array_equal(thin, downsample(pts, 0.25, seed=0))  # deterministic with the seed
 
 
+@pytest.mark.parametrize("radius", [0.02, 0.06, 0.15])
+def test_thinning_matches_the_sequential_loop(radius: float) -> None:
+    """The vectorised rounds give exactly the points of the official loop over the shuffled order."""
+    x = np.random.default_rng(3).uniform(size=(4000, 3))
+    order = x.copy()
+    np.random.default_rng(5).shuffle(order, axis=0)
+    keep = np.ones(len(order), dtype=bool)
+    for cur, nb in enumerate(cKDTree(order).query_ball_point(order, radius)):
+        if keep[cur]:
+            keep[nb] = False
+            keep[cur] = True
+    np.testing.assert_array_equal(downsample(x, radius, seed=5), order[keep])
+
+
 def test_self_is_near_zero_and_plane_culls_stl(tmp_path: Path, dtu_root: Path) -> None:
     mesh = _export(_sphere(), tmp_path / "m.ply")
     r = dtu_chamfer(mesh, dtu_root, SCAN, density=0.1)

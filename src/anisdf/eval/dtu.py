@@ -138,26 +138,32 @@ def sample_mesh(vertices: np.ndarray, faces: np.ndarray, density: float, chunk: 
     return np.concatenate(out, axis=0)
 
 
-def downsample(points: np.ndarray, radius: float, seed: int, chunk: int = 100_000) -> np.ndarray:
+def downsample(points: np.ndarray, radius: float, seed: int) -> np.ndarray:
     """Shuffle (``seed``), then keep a point unless an earlier kept point lies within ``radius``.
 
-    The greedy thinning of the official script (``reducePts_haa``); the shuffle fixes its order.
+    The greedy thinning of the official script (``reducePts_haa``: visit the points in order, keep a point not yet
+    removed and remove its neighbours); the shuffle fixes the order. Computed exactly in vectorised rounds over the
+    pairs within ``radius``: a point is removed once an earlier neighbour is kept, and kept once all its earlier
+    neighbours are removed.
     """
     pts = np.asarray(points, dtype=np.float64).copy()
     np.random.default_rng(seed).shuffle(pts, axis=0)
     if len(pts) == 0 or radius <= 0:
         return pts
-    tree = cKDTree(pts)
-    keep = np.ones(len(pts), dtype=bool)
-    for s in range(0, len(pts), chunk):
-        idx = np.arange(s, min(s + chunk, len(pts)))
-        idx = idx[keep[idx]]  # points already removed by earlier chunks need no query
-        neighbours = tree.query_ball_point(pts[idx], r=radius, workers=-1)
-        for cur, nb in zip(idx.tolist(), neighbours, strict=True):
-            if keep[cur]:
-                keep[nb] = False
-                keep[cur] = True
-    return pts[keep]
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    a, b = pairs.min(axis=1), pairs.max(axis=1)  # (earlier neighbour, point)
+    state = np.zeros(len(pts), dtype=np.int8)  # 0 undecided, 1 kept, 2 removed
+    while True:
+        state[b[state[a] == 1]] = 2
+        live = (state[b] == 0) & (state[a] != 2)  # pairs that can still decide something
+        a, b = a[live], b[live]
+        blocked = np.zeros(len(pts), dtype=bool)
+        blocked[b] = True  # an earlier neighbour is still undecided
+        newly = (state == 0) & ~blocked
+        if not newly.any():
+            break
+        state[newly] = 1
+    return pts[state == 1]
 
 
 def _read_mask(path: Path) -> np.ndarray:
