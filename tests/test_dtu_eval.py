@@ -88,6 +88,9 @@ def test_self_is_near_zero_and_plane_culls_stl(tmp_path: Path, dtu_root: Path) -
     assert r["chamfer"] == pytest.approx((r["accuracy"] + r["completeness"]) / 2)
     # plane z > centre - 3 drops the STL cap below it: 1/8 of the sphere's area (cap height 1 of diameter 8)
     assert r["n_stl_above_plane"] / r["n_stl_downsampled"] == pytest.approx(7 / 8, abs=0.03)
+    full = dtu_chamfer(mesh, dtu_root, SCAN, density=0.1, thin_stl=False)
+    assert full["n_stl_downsampled"] == full["n_stl_points"] == 20_000 > r["n_stl_downsampled"]
+    assert full["accuracy"] < r["accuracy"]  # a denser reference is nearer
 
 
 def test_offset_by_one_mm(tmp_path: Path, dtu_root: Path) -> None:
@@ -170,7 +173,7 @@ def test_cli_last_line(tmp_path: Path, dtu_root: Path, capsys: pytest.CaptureFix
     mesh = _export(_sphere(RADIUS + 1.0), tmp_path / "m.ply")
     cams = _camera_dataset(tmp_path / "scene", mask_radius_px=30.0)
     assert main(["dtu-chamfer", str(mesh), "--dtu-root", str(dtu_root), "--scan", str(SCAN),
-                 "--mask-cull", str(cams)]) == 0
+                 "--mask-cull", str(cams), "--no-stl-thinning"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     m = re.fullmatch(r"accuracy (\d+\.\d{3}) completeness (\d+\.\d{3}) chamfer (\d+\.\d{3})", lines[-1])
     assert m, lines[-1]
@@ -178,7 +181,7 @@ def test_cli_last_line(tmp_path: Path, dtu_root: Path, capsys: pytest.CaptureFix
     assert acc == pytest.approx(1.0, abs=0.1) and comp == pytest.approx(1.0, abs=0.1)
     assert cd == pytest.approx((acc + comp) / 2, abs=1e-3)
     assert any(line.startswith("mask_cull: ") and str(cams / "mask") in line for line in lines)
-    assert "density_mm: 0.2" in lines and "max_dist_mm: 20.0" in lines
+    assert "density_mm: 0.2" in lines and "max_dist_mm: 20.0" in lines and "thin_stl: False" in lines
 
 
 def test_missing_files_name_the_expected_path(tmp_path: Path, dtu_root: Path,

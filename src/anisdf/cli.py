@@ -83,7 +83,7 @@ def cmd_dtu_chamfer(args: argparse.Namespace) -> int:
 
     mask_cull = mask_cull_inputs(args.mask_cull) if args.mask_cull else None
     r = dtu_chamfer(args.mesh, args.dtu_root, args.scan, scale_mat=args.scale_mat, mask_cull=mask_cull,
-                    density=args.density, max_dist=args.max_dist, seed=args.seed)
+                    density=args.density, max_dist=args.max_dist, seed=args.seed, thin_stl=not args.no_stl_thinning)
     for key, value in r.items():
         if key not in ("accuracy", "completeness", "chamfer"):
             print(f"{key}: {value}")
@@ -173,7 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="NeuS dataset folder (cameras npz, mask/): cull the mesh with the dilated masks first")
     s.add_argument("--density", type=float, default=0.2, help="sampling and thinning distance in mm")
     s.add_argument("--max-dist", type=float, default=20.0, help="distances of this many mm or more are outliers")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="order of the point thinning")
+    s.add_argument("--no-stl-thinning", action="store_true",
+                   help="score against every STL point (DTUeval-python) instead of thinning them (MATLAB original)")
     s.set_defaults(fn=cmd_dtu_chamfer)
 
     s = sub.add_parser("demo", help="reconstruct the bundled scene on the CPU in a few minutes")

@@ -9,7 +9,8 @@ port (jzhangbs/DTUeval-python ``eval.py``), with scipy instead of open3d / sciki
    dilated foreground mask are removed, and so (here) are vertices that no image sees.
 3. The mesh is sampled on a regular grid in every triangle at ``density`` spacing, plus its vertices.
 4. The points are shuffled (``seed``) and thinned so that no two are within ``density`` (greedy, in the shuffled
-   order: ``reducePts_haa``); the STL reference points are thinned the same way (as the MATLAB original does).
+   order: ``reducePts_haa``); the STL reference points are thinned the same way, as the MATLAB original does
+   (the Python port does not: ``thin_stl=False``).
 5. Accuracy uses the points inside ``ObsMask{scan}_10.mat`` (bounding box ``BB``, voxel size ``Res``, voxel
    ``round((p - BB[0]) / Res)`` set); completeness uses the STL points above ``Plane{scan}.mat``
    (``[x, 1] @ P > 0``) against the thinned points within the bounding box grown by ``patch`` mm.
@@ -238,11 +239,12 @@ def cull_by_masks(vertices: np.ndarray, faces: np.ndarray, cameras_npz: str | Pa
 
 def dtu_chamfer(mesh_path: str | Path, dtu_root: str | Path, scan: int, scale_mat: str | Path | None = None,
                 mask_cull: tuple[str | Path, str | Path] | None = None, density: float = 0.2,
-                max_dist: float = 20.0, seed: int = 0) -> dict[str, Any]:
+                max_dist: float = 20.0, seed: int = 0, thin_stl: bool = True) -> dict[str, Any]:
     """Official DTU accuracy, completeness and Chamfer distance (mm) of a mesh for DTU scan ``scan``.
 
     ``scale_mat``: a NeuS ``cameras_sphere.npz`` whose ``scale_mat_0`` maps the mesh to DTU world (mm);
-    ``mask_cull``: ``(cameras npz, mask dir)`` for mask culling before scoring. Returns the three numbers and the
+    ``mask_cull``: ``(cameras npz, mask dir)`` for mask culling before scoring; ``thin_stl=False`` scores against
+    every STL point as the Python port does (the MATLAB original thins them). Returns the three numbers and the
     protocol (options, point counts, outliers).
     """
     if density <= 0 or max_dist <= 0:
@@ -256,8 +258,8 @@ def dtu_chamfer(mesh_path: str | Path, dtu_root: str | Path, scan: int, scale_ma
     faces = np.asarray(mesh.faces, dtype=np.int64)
     protocol: dict[str, Any] = {"scan": scan, "mesh": str(mesh_path), "dtu_root": str(dtu_root),
                                 "density_mm": density, "max_dist_mm": max_dist, "outliers": "discarded (>= max_dist)",
-                                "patch_mm": PATCH_MM, "seed": seed, "scale_mat": None if scale_mat is None
-                                else str(scale_mat), "mask_cull": None}
+                                "patch_mm": PATCH_MM, "seed": seed, "thin_stl": thin_stl,
+                                "scale_mat": None if scale_mat is None else str(scale_mat), "mask_cull": None}
     if scale_mat is not None:
         vertices = apply_affine(load_scale_mat(scale_mat), vertices)
     if mask_cull is not None:
@@ -285,7 +287,7 @@ def dtu_chamfer(mesh_path: str | Path, dtu_root: str | Path, scan: int, scale_ma
                           "DTU world coordinates, mm? use --scale-mat for a mesh in the unit sphere)")
 
     stl_all = _load_points(paths["stl"])
-    stl = downsample(stl_all, density, seed)
+    stl = downsample(stl_all, density, seed) if thin_stl else stl_all
     plane = _loadmat(paths["plane"], ("P",))["P"].astype(np.float64).reshape(-1)
     if plane.shape != (4,):
         raise DataError(paths["plane"], f"P must have 4 coefficients, got {plane.size}")
