@@ -65,6 +65,8 @@ def test_sampling_and_thinning() -> None:
     d_all, _ = cKDTree(thin).query(pts)
     assert d_all.max() <= 0.25  # every removed point has a kept one within the radius
     np.testing.assert_array_equal(thin, downsample(pts, 0.25, seed=0))  # deterministic with the seed
+    np.testing.assert_array_equal(sample_mesh(tri, np.array([[0, 1, 2]] * 3), 0.2, chunk=10),
+                                  np.concatenate([tri] + [pts[3:]] * 3))  # chunks of the grid give the same points
 
 
 @pytest.mark.parametrize("radius", [0.02, 0.06, 0.15])
@@ -198,6 +200,8 @@ def test_missing_files_name_the_expected_path(tmp_path: Path, dtu_root: Path,
     assert main(["dtu-chamfer", str(mesh), "--dtu-root", str(dtu_root), "--scan", "65",
                  "--mask-cull", str(empty)]) == 2
     assert str(empty / "cameras_sphere.npz") in capsys.readouterr().err
+    assert main(["dtu-chamfer", str(tmp_path / "none.ply"), "--dtu-root", str(dtu_root), "--scan", "65"]) == 2
+    assert str(tmp_path / "none.ply") in capsys.readouterr().err
     (dtu_root / "Points" / "stl" / "stl065_total.ply").unlink()
     with pytest.raises(DataError, match=re.escape(str(dtu_root / "Points" / "stl" / "stl065_total.ply"))):
         dtu_chamfer(mesh, dtu_root, SCAN)

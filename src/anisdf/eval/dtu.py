@@ -107,13 +107,14 @@ def apply_affine(mat: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ mat[:3, :3].T + mat[:3, 3]
 
 
-def sample_mesh(vertices: np.ndarray, faces: np.ndarray, density: float, chunk: int = 200_000) -> np.ndarray:
+def sample_mesh(vertices: np.ndarray, faces: np.ndarray, density: float, chunk: int = 4_000_000) -> np.ndarray:
     """The official sampling: a regular grid in each triangle, then the vertices.
 
     For a triangle with edges ``v1 = b - a``, ``v2 = c - a`` of lengths ``l1, l2`` and doubled area ``A2``, the
     spacing is ``t = density * sqrt(l1 l2 / A2)``, ``n_k = floor(l_k / t)`` and the points are
     ``a + s1 v1 + s2 v2`` with ``s_k = (i_k + 0.5) / n_k``, ``i_k = 0..n_k``, kept where ``s1 + s2 < 1``.
-    Deterministic; degenerate triangles contribute only their vertices.
+    Deterministic; degenerate triangles contribute only their vertices. ``chunk`` bounds the grid candidates held
+    at once.
     """
     tri = vertices[faces]
     v1, v2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
@@ -124,8 +125,11 @@ def sample_mesh(vertices: np.ndarray, faces: np.ndarray, density: float, chunk: 
     thr = density * np.sqrt(l1 * l2 / area2)
     n1, n2 = np.floor(l1 / thr).astype(np.int64), np.floor(l2 / thr).astype(np.int64)
     out = [vertices.astype(np.float64)]
-    for s in range(0, len(tri), chunk):
-        e = slice(s, s + chunk)
+    cum = np.cumsum((n1 + 1) * (n2 + 1))
+    s = 0
+    while s < len(tri):
+        stop = max(s + 1, int(np.searchsorted(cum, (cum[s - 1] if s else 0) + chunk, side="right")))
+        e, s = slice(s, stop), stop
         c1, c2 = n1[e], n2[e]
         counts = (c1 + 1) * (c2 + 1)
         t = np.repeat(np.arange(len(counts)), counts)
@@ -269,12 +273,15 @@ def dtu_chamfer(mesh_path: str | Path, dtu_root: str | Path, scan: int, scale_ma
             raise AnisdfError(f"dtu-chamfer: mask culling with {mask_cull[1]} removed the whole mesh (is the mesh in "
                               "DTU world coordinates? use --scale-mat for a mesh in the unit sphere)")
 
-    data = downsample(sample_mesh(vertices, faces, density), density, seed)
+    sampled = sample_mesh(vertices, faces, density)
+    data = downsample(sampled, density, seed)
 
     obs = _loadmat(paths["obs_mask"], ("ObsMask", "BB", "Res"))
-    obs_mask, bb, res = obs["ObsMask"].astype(bool), obs["BB"].astype(np.float64), float(obs["Res"].squeeze())
+    # BB in float32 as eval.py reads it
+    obs_mask, bb, res = obs["ObsMask"].astype(bool), obs["BB"].astype(np.float32), float(obs["Res"].squeeze())
     if obs_mask.ndim != 3 or bb.shape != (2, 3):
         raise DataError(paths["obs_mask"], f"ObsMask must be 3-D and BB 2x3, got {obs_mask.shape} and {bb.shape}")
+    bb = bb.astype(np.float64)
     inbound = np.all((data >= bb[:1] - PATCH_MM) & (data < bb[1:] + 2 * PATCH_MM), axis=1)
     data_in = data[inbound]
     grid = np.around((data_in - bb[:1]) / res).astype(np.int64)
@@ -296,15 +303,15 @@ def dtu_chamfer(mesh_path: str | Path, dtu_root: str | Path, scan: int, scale_ma
         raise DataError(paths["plane"], "no STL point lies above this plane")
 
     d2s, _ = cKDTree(stl).query(data_obs, k=1, distance_upper_bound=max_dist, workers=-1)
-    s2d, _ = cKDTree(data_in).query(stl_above, k=1, distance_upper_bound=max_dist, workers=-1) if len(data_in) \
-        else (np.full(len(stl_above), np.inf), None)
+    s2d, _ = cKDTree(data_in).query(stl_above, k=1, distance_upper_bound=max_dist, workers=-1)
     d2s_in, s2d_in = d2s[d2s < max_dist], s2d[s2d < max_dist]
     if len(d2s_in) == 0 or len(s2d_in) == 0:
         raise AnisdfError(f"dtu-chamfer: every distance is an outlier (>= {max_dist} mm); the mesh is not near the "
                           f"reference of scan {scan} (wrong scan or frame?)")
     accuracy, completeness = float(d2s_in.mean()), float(s2d_in.mean())
     protocol.update({
-        "n_mesh_vertices": len(vertices), "n_mesh_faces": len(faces), "n_data_points": len(data),
+        "n_mesh_vertices": len(vertices), "n_mesh_faces": len(faces), "n_data_sampled": len(sampled),
+        "n_data_points": len(data),
         "n_data_in_bbox": len(data_in), "n_data_in_obs_mask": len(data_obs), "n_stl_points": len(stl_all),
         "n_stl_downsampled": len(stl), "n_stl_above_plane": len(stl_above),
         "n_accuracy_outliers": int(len(d2s) - len(d2s_in)), "n_completeness_outliers": int(len(s2d) - len(s2d_in)),
