@@ -78,6 +78,19 @@ def cmd_chamfer(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_dtu_chamfer(args: argparse.Namespace) -> int:
+    from anisdf.eval.dtu import dtu_chamfer, mask_cull_inputs
+
+    mask_cull = mask_cull_inputs(args.mask_cull) if args.mask_cull else None
+    r = dtu_chamfer(args.mesh, args.dtu_root, args.scan, scale_mat=args.scale_mat, mask_cull=mask_cull,
+                    density=args.density, max_dist=args.max_dist, seed=args.seed, thin_stl=not args.no_stl_thinning)
+    for key, value in r.items():
+        if key not in ("accuracy", "completeness", "chamfer"):
+            print(f"{key}: {value}")
+    print(f"accuracy {r['accuracy']:.3f} completeness {r['completeness']:.3f} chamfer {r['chamfer']:.3f}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from anisdf.systems.demo import run_demo
 
@@ -150,6 +163,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--points", type=int, default=1_000_000)
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(fn=cmd_chamfer)
+
+    s = sub.add_parser("dtu-chamfer", help="official DTU accuracy / completeness / Chamfer in mm (last line)")
+    s.add_argument("mesh")
+    s.add_argument("--dtu-root", required=True, help="folder with ObsMask/ and Points/stl/ of the DTU benchmark")
+    s.add_argument("--scan", type=int, required=True, help="DTU scan number, e.g. 65")
+    s.add_argument("--scale-mat", default=None, help="cameras_sphere.npz whose scale_mat_0 maps the mesh to mm")
+    s.add_argument("--mask-cull", default=None, metavar="DATASET_DIR",
+                   help="NeuS dataset folder (cameras npz, mask/): cull the mesh with the dilated masks first")
+    s.add_argument("--density", type=float, default=0.2, help="sampling and thinning distance in mm")
+    s.add_argument("--max-dist", type=float, default=20.0, help="distances of this many mm or more are outliers")
+    s.add_argument("--seed", type=int, default=0, help="order of the point thinning")
+    s.add_argument("--no-stl-thinning", action="store_true",
+                   help="score against every STL point (DTUeval-python) instead of thinning them (MATLAB original)")
+    s.set_defaults(fn=cmd_dtu_chamfer)
 
     s = sub.add_parser("demo", help="reconstruct the bundled scene on the CPU in a few minutes")
     s.add_argument("--out", default="runs/demo")
