@@ -93,6 +93,22 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _reproduce_command(args: argparse.Namespace) -> str:
+    """The command line of ``anisdf reproduce`` as parsed (for reproduce.md)."""
+    import shlex
+
+    parts = ["anisdf", "reproduce", args.table, "--data", args.data, "--out", args.out, "--scale", args.scale]
+    for opt in ("scenes", "minutes", "seeds", "max_steps", "max_views", "mesh_resolution", "chamfer_points",
+                "dtu_eval", "device"):
+        value = getattr(args, opt)
+        if value is not None and value != _REPRODUCE_DEFAULTS.get(opt):
+            parts += [f"--{opt.replace('_', '-')}", str(value)]
+    return shlex.join(parts + list(args.overrides or []))
+
+
+_REPRODUCE_DEFAULTS = {"max_views": 0, "mesh_resolution": 512, "chamfer_points": 1_000_000}
+
+
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from anisdf.errors import AnisdfError
     from anisdf.systems.reproduce import reproduce
@@ -104,8 +120,9 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     reproduce(args.table, Path(args.data), Path(args.out), scale=args.scale,
               scenes=args.scenes.split(",") if args.scenes else None, minutes=args.minutes, seeds=seeds,
               device=args.device, overrides=args.overrides, max_steps=args.max_steps, max_views=args.max_views,
-              dtu_eval=Path(args.dtu_eval) if args.dtu_eval else None,
-              command="anisdf " + " ".join(sys.argv[1:]) if sys.argv[1:] else None, progress=not args.no_progress)
+              mesh_resolution=args.mesh_resolution, chamfer_points=args.chamfer_points,
+              dtu_eval=Path(args.dtu_eval) if args.dtu_eval else None, command=_reproduce_command(args),
+              progress=not args.no_progress)
     print(Path(args.out) / "reproduce.md")
     return 0
 
@@ -196,6 +213,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seeds", default=None, help="comma-separated seeds (train.seed), e.g. 0,1 (default 0)")
     s.add_argument("--max-steps", type=int, default=None, help="steps per run instead of the preset's")
     s.add_argument("--max-views", type=int, default=0, help="evaluate on at most this many test views (0: all)")
+    s.add_argument("--mesh-resolution", type=int, default=512, help="marching cubes resolution for the Chamfer")
+    s.add_argument("--chamfer-points", type=int, default=1_000_000)
     s.add_argument("--dtu-eval", default=None,
                    help="folder with DTU's official ObsMask/ and Points/stl/ (default: beside the scenes)")
     s.add_argument("--device", default=None)

@@ -182,6 +182,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
         "chamfer_unit": table.chamfer_unit, "command": command, "machine": machine_info(device),
         "rows": list(old_rows), "means": {}}
     plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
+    _write(out, table, result)
     eval_opts = {"max_views": max_views, "mesh_resolution": mesh_resolution, "chamfer_points": chamfer_points}
     for i, (name, path, config, seed) in enumerate(plan, 1):
         tag = f"[{i}/{len(plan)}] {name} {config} seed {seed}"
@@ -274,6 +275,11 @@ def markdown(table: PaperTable, result: dict[str, Any]) -> str:
                 cells += [_fmt(x, s["ours"][x], unit), _fmt(x, s["paper_same_scenes"][x], unit),
                           _fmt(x, (s["paper_table_mean"] or {}).get(x), unit)]
             lines.append("| " + " | ".join(cells) + " |")
+        groups = {g: v for g, v in table.means.items() if g != "all"} if table.name != "ablation" else {}
+        if groups:
+            lines += ["", "The paper's means per group: " + "; ".join(
+                f"{g} " + ", ".join(f"{names[x]} {_fmt(x, v, unit)}" for x, v in ms.items())
+                for g, ms in groups.items())]
     notes = [f"- {r['scene']} {r['config']} seed {r['seed']}: {n}" for r in rows for n in r.get("notes") or []]
     if notes:
         lines += ["", "Notes:", "", *notes]
