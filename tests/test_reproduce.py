@@ -20,7 +20,7 @@ from anisdf.systems import commands, reproduce
 from anisdf.systems.trainer import Trainer
 
 PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "reference" / "anisdf-paper.tex"
-FAST = {"scale": "cpu", "minutes": 0.0, "max_steps": 4, "overrides": TINY, "mesh_resolution": 32,
+FAST = {"scale": "cpu", "minutes": 0.0, "max_steps": 2, "overrides": TINY, "max_views": 1, "mesh_resolution": 32,
         "chamfer_points": 2000, "progress": False}
 ROW_KEYS = {"scene", "config", "seed", *METRICS, "paper", "seconds"}
 
@@ -107,7 +107,7 @@ def test_table_run_writes_rows_beside_the_papers_and_resumes(lego_root, tmp_path
     rows = on_disk["rows"]
     assert [(r["scene"], r["config"], r["seed"]) for r in rows] == [("lego", "full", 0), ("lego", "full", 1)]
     for r in rows:
-        assert ROW_KEYS <= set(r) and r["status"] == "done" and r["steps"] == 4 and r["seconds"] > 0
+        assert ROW_KEYS <= set(r) and r["status"] == "done" and r["steps"] == 2 and r["seconds"] > 0
         assert r["psnr"] > 5 and 0 < r["ssim"] <= 1 and r["chamfer"] > 0 and r["normal_mae_deg"] >= 0
         assert r["paper"]["psnr"] == 35.69 and r["paper"]["chamfer"] == pytest.approx(5.16e-3)
     assert yaml.safe_load((out / "lego" / "full-seed1" / "config.yaml").read_text())["train"]["seed"] == 1
@@ -131,12 +131,12 @@ def test_interrupted_run_is_resumed(lego_root, tmp_path, monkeypatch):
     out = tmp_path / "out"
     step = Trainer.train_step
 
-    def interrupt_at_3(self):
-        if self.state.step == 2:
+    def interrupt_at_2(self):
+        if self.state.step == 1:
             raise KeyboardInterrupt
         return step(self)
 
-    monkeypatch.setattr(Trainer, "train_step", interrupt_at_3)
+    monkeypatch.setattr(Trainer, "train_step", interrupt_at_2)
     with pytest.raises(KeyboardInterrupt):
         reproduce.reproduce("nerf-synthetic", lego_root, out, **FAST)
     run = out / "lego" / "full"
@@ -148,7 +148,7 @@ def test_interrupted_run_is_resumed(lego_root, tmp_path, monkeypatch):
     monkeypatch.setattr(commands, "train", lambda *a, **k: calls.append(k) or train(*a, **k))
     rows = reproduce.reproduce("nerf-synthetic", lego_root, out, **FAST)["rows"]
     assert [c["resume"] for c in calls] == [True]
-    assert len(rows) == 1 and rows[0]["status"] == "done" and rows[0]["steps"] == 4
+    assert len(rows) == 1 and rows[0]["status"] == "done" and rows[0]["steps"] == 2
     assert json.loads((run / "run.json").read_text())["status"] == "done"
 
 
@@ -156,7 +156,8 @@ def test_ablation_on_a_scene_folder_not_in_the_paper(lego_root, tmp_path, capsys
     out = tmp_path / "abl"
     scene = lego_root / "my_object"
     assert main(["reproduce", "ablation", "--data", str(scene), "--out", str(out), "--scale", "cpu",
-                 "--minutes", "0", "--max-steps", "2", "--mesh-resolution", "32", "--chamfer-points", "2000",
+                 "--minutes", "0", "--max-steps", "1", "--max-views", "1", "--mesh-resolution", "32",
+                 "--chamfer-points", "2000",
                  "--no-progress", *TINY]) == 0
     assert capsys.readouterr().out.strip().endswith("reproduce.md")
     result = json.loads((out / "reproduce.json").read_text())
@@ -168,7 +169,7 @@ def test_ablation_on_a_scene_folder_not_in_the_paper(lego_root, tmp_path, capsys
     assert set(result["means"]) == set(TABLES["ablation"].configs)
     assert result["means"]["no-asg"]["paper_table_mean"]["psnr"] == 32.38
     md = (out / "reproduce.md").read_text()
-    assert "32.38" in md and "anisdf reproduce ablation --data" in md and "--max-steps 2" in md
+    assert "32.38" in md and "anisdf reproduce ablation --data" in md and "--max-steps 1" in md
 
 
 def test_dtu_scene_without_official_files_gets_a_note(tmp_path):

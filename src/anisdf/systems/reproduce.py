@@ -128,9 +128,11 @@ def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], ta
         if status != "done":
             raise AnisdfError(f"{run}: training ended with status '{status}'; rerun to resume it")
     t0 = time.perf_counter()
-    gt = data / "gt_mesh.ply"
-    metrics = evaluate(run, gt_mesh=gt if gt.is_file() else None, device=device, progress=progress, **eval_opts)
-    if not gt.is_file() and table.name != "dtu":
+    # DTU is scored by the official protocol only (below), never against a mesh of the scene folder
+    gt = data / "gt_mesh.ply" if table.name != "dtu" else None
+    has_gt = gt is not None and gt.is_file()
+    metrics = evaluate(run, gt_mesh=gt if has_gt else None, device=device, progress=progress, **eval_opts)
+    if gt is not None and not has_gt and any(p["chamfer"] is not None for p in table.scenes.values()):
         notes.append(f"Chamfer not measured: no {gt.name} in {data}")
     if table.name == "dtu":
         cd, note = _dtu_chamfer(run, data, scene, dtu_eval, eval_opts.get("mesh_resolution", 512))
