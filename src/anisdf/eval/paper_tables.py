@@ -107,7 +107,7 @@ class PaperTable:
 
 
 def _syn_scenes(source: str) -> dict[str, dict[str, float | str | None]]:
-    return {s: _paper(source, psnr=_SYN_PSNR[s], chamfer=_SYN_CD_E3[s] * 1e-3) for s in _SYN_PSNR}
+    return {s: _paper(source, psnr=_SYN_PSNR[s], chamfer=round(_SYN_CD_E3[s] * 1e-3, 8)) for s in _SYN_PSNR}
 
 
 TABLES: dict[str, PaperTable] = {
