@@ -106,6 +106,40 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _reproduce_command(args: argparse.Namespace) -> str:
+    """The command line of ``anisdf reproduce`` as parsed (for reproduce.md)."""
+    import shlex
+
+    parts = ["anisdf", "reproduce", args.table, "--data", args.data, "--out", args.out, "--scale", args.scale]
+    for opt in ("scenes", "minutes", "seeds", "max_steps", "max_views", "mesh_resolution", "chamfer_points",
+                "dtu_eval", "device"):
+        value = getattr(args, opt)
+        if value is not None and value != _REPRODUCE_DEFAULTS.get(opt):
+            parts += [f"--{opt.replace('_', '-')}", str(value)]
+    return shlex.join(parts + list(args.overrides or []))
+
+
+_REPRODUCE_DEFAULTS = {"max_views": 0, "mesh_resolution": 512, "chamfer_points": 1_000_000}
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from anisdf.errors import AnisdfError
+    from anisdf.systems.reproduce import reproduce
+
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else None
+    except ValueError:
+        raise AnisdfError(f"--seeds must be comma-separated integers, not '{args.seeds}'") from None
+    reproduce(args.table, Path(args.data), Path(args.out), scale=args.scale,
+              scenes=args.scenes.split(",") if args.scenes else None, minutes=args.minutes, seeds=seeds,
+              device=args.device, overrides=args.overrides, max_steps=args.max_steps, max_views=args.max_views,
+              mesh_resolution=args.mesh_resolution, chamfer_points=args.chamfer_points,
+              dtu_eval=Path(args.dtu_eval) if args.dtu_eval else None, command=_reproduce_command(args),
+              progress=not args.no_progress)
+    print(Path(args.out) / "reproduce.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
     p.add_argument("--version", action="version", version=f"anisdf {__version__}")
@@ -192,6 +226,28 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default="auto", help="auto (CUDA if available) | cpu | cuda[:N]")
     s.add_argument("--preset", default="cpu-quick", help="configuration of the training-step and time-to-PSNR runs")
     s.set_defaults(fn=cmd_bench)
+
+    from anisdf.eval.paper_tables import TABLES
+
+    s = sub.add_parser("reproduce", help="train and evaluate a table of the paper -> OUT/reproduce.json, .md")
+    s.add_argument("table", choices=list(TABLES))
+    s.add_argument("--data", required=True, help="dataset root holding the table's scenes, or one scene folder")
+    s.add_argument("--out", required=True, help="folder of the runs and the results (a rerun resumes)")
+    s.add_argument("--scale", choices=["paper", "cpu"], default="paper",
+                   help="paper: the table's preset; cpu: cpu-quick with the table's data settings, --minutes per run")
+    s.add_argument("--scenes", default=None, help="comma-separated scene folder names (default: the paper's)")
+    s.add_argument("--minutes", type=float, default=None, help="time budget per run (cpu scale: 10)")
+    s.add_argument("--seeds", default=None, help="comma-separated seeds (train.seed), e.g. 0,1 (default 0)")
+    s.add_argument("--max-steps", type=int, default=None, help="steps per run instead of the preset's")
+    s.add_argument("--max-views", type=int, default=0, help="evaluate on at most this many test views (0: all)")
+    s.add_argument("--mesh-resolution", type=int, default=512, help="marching cubes resolution for the Chamfer")
+    s.add_argument("--chamfer-points", type=int, default=1_000_000)
+    s.add_argument("--dtu-eval", default=None,
+                   help="folder with DTU's official ObsMask/ and Points/stl/ (default: beside the scenes)")
+    s.add_argument("--device", default=None)
+    s.add_argument("--no-progress", action="store_true")
+    s.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for every run")
+    s.set_defaults(fn=cmd_reproduce)
     return p
 
 

@@ -1,0 +1,294 @@
+"""``anisdf reproduce TABLE``: train and evaluate every scene of one of the paper's tables, our figures beside the
+paper's, in OUT/reproduce.json and OUT/reproduce.md.
+
+Each (scene, configuration, seed) is one run folder, ``OUT/<scene>/<config>`` (``-seed<s>`` added for seeds other
+than 0), trained with :func:`anisdf.systems.commands.train` and scored with :func:`~anisdf.systems.commands.evaluate`.
+A call resumes where the previous one stopped: rows already in reproduce.json are kept, an unfinished run is
+continued with ``--resume``, and reproduce.json (written atomically) and reproduce.md are rewritten after each row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import platform
+import re
+import shlex
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.eval.paper_tables import METRICS, PaperTable, find_scenes, get_table
+from anisdf.export.atomic import write_text_atomic
+
+log = logging.getLogger("anisdf")
+
+CPU_PRESET = "cpu-quick"
+SCALES = ("paper", "cpu")
+
+
+def machine_info(device: str | None = None) -> dict[str, Any]:
+    """CPU model, GPU name (when CUDA is used), torch version and thread count of this machine."""
+    from anisdf.systems.trainer import pick_device
+
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    dev = pick_device(device or "auto")
+    return {"cpu": cpu, "cpu_threads": torch.get_num_threads(), "device": str(dev),
+            "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None, "torch": torch.__version__}
+
+
+def _data_overrides(preset: str) -> list[str]:
+    """The data settings of ``preset`` that differ from the defaults, other than the image downscale (the CPU scale
+    keeps cpu-quick's): DTU trains on all views, Mip-NeRF 360 reads images_4, ..."""
+    from anisdf.config import DataConfig, load_config
+
+    data, default = load_config(preset).data, DataConfig()
+    return [f"data.{f.name}={getattr(data, f.name)}" for f in dataclasses.fields(DataConfig)
+            if f.name != "downscale" and getattr(data, f.name) != getattr(default, f.name)]
+
+
+def run_settings(table: PaperTable, scene: str, config: str, scale: str, seed: int,
+                 extra: list[str] | tuple[str, ...] = ()) -> tuple[str, list[str]]:
+    """Preset and overrides of one run: the table's preset (``paper``) or cpu-quick with the table's data settings
+    (``cpu``), then the scene's protocol (Mip-NeRF 360 indoor: images_2), the configuration, the seed and ``extra``."""
+    if scale not in SCALES:
+        raise AnisdfError(f"--scale must be one of {', '.join(SCALES)}, not '{scale}'")
+    preset = table.preset if scale == "paper" else CPU_PRESET
+    base = [] if scale == "paper" else _data_overrides(table.preset)
+    return preset, [*base, *table.overrides_for(scene), *table.configs[config], f"train.seed={seed}", *extra]
+
+
+def _run_dir(out: Path, scene: str, config: str, seed: int) -> Path:
+    return out / scene / (config if seed == 0 else f"{config}-seed{seed}")
+
+
+def _read_status(run: Path) -> str | None:
+    info = run / "run.json"
+    return json.loads(info.read_text()).get("status") if info.is_file() else None
+
+
+def _dtu_chamfer(run: Path, scene_dir: Path, scene: str, dtu_eval: Path | None,
+                 mesh_resolution: int) -> tuple[dict[str, Any] | None, str | None]:
+    """The official DTU Chamfer (mm) of the run's mesh when ``anisdf.eval.dtu`` and the official evaluation files
+    (ObsMask/, Points/stl/) are there; else None and a note saying what is missing."""
+    try:
+        from anisdf.eval.dtu import dtu_chamfer
+    except ImportError:
+        return None, "DTU Chamfer not measured: this version has no anisdf.eval.dtu"
+    m = re.search(r"scan_?(\d+)$", scene.lower())
+    if m is None:
+        return None, f"DTU Chamfer not measured: no scan number in the folder name '{scene}'"
+    scan = int(m.group(1))
+    root = dtu_eval or scene_dir.parent
+    needed = [root / "ObsMask" / f"ObsMask{scan}_10.mat", root / "Points" / "stl" / f"stl{scan:03d}_total.ply"]
+    missing = [str(p) for p in needed if not p.is_file()]
+    if missing:
+        return None, f"DTU Chamfer not measured: official evaluation files missing ({', '.join(missing)}; --dtu-eval)"
+    from anisdf.systems.commands import extract_mesh
+
+    mesh = run / "mesh.ply"
+    if not mesh.is_file():
+        mesh = extract_mesh(run, resolution=mesh_resolution, progress=False)
+    # the mesh is already in DTU's world frame (mm): extract_mesh undoes the scene's scale_mat, so none is passed
+    return dtu_chamfer(mesh, root, scan, scale_mat=None), None
+
+
+def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], table: PaperTable, scene: str,
+                    max_minutes: float | None, max_steps: int | None, device: str | None, progress: bool,
+                    eval_opts: dict[str, Any], dtu_eval: Path | None) -> dict[str, Any]:
+    from anisdf.systems.commands import evaluate, train
+
+    notes: list[str] = []
+    status = _read_status(run)
+    if status != "done":
+        resume = (run / "checkpoints" / "last.pt").is_file()
+        if resume:
+            log.info("  resuming the unfinished run %s (%s)", run, status)
+        try:
+            summary = train(data, run, preset=None if resume else preset, overrides=None if resume else overrides,
+                            max_steps=max_steps, max_minutes=None if resume else max_minutes, device=device,
+                            resume=resume, progress=progress)
+        except TrainingDiverged as e:
+            return {"status": "diverged", "notes": [str(e)]}
+        status = summary["status"]
+        if status == "interrupted":
+            raise KeyboardInterrupt
+        if status != "done":
+            raise AnisdfError(f"{run}: training ended with status '{status}'; rerun to resume it")
+    t0 = time.perf_counter()
+    # DTU is scored by the official protocol only (below), never against a mesh of the scene folder
+    gt = data / "gt_mesh.ply" if table.name != "dtu" else None
+    has_gt = gt is not None and gt.is_file()
+    metrics = evaluate(run, gt_mesh=gt if has_gt else None, device=device, progress=progress, **eval_opts)
+    if gt is not None and not has_gt and any(p["chamfer"] is not None for p in table.scenes.values()):
+        notes.append(f"Chamfer not measured: no {gt.name} in {data}")
+    if table.name == "dtu":
+        cd, note = _dtu_chamfer(run, data, scene, dtu_eval, eval_opts.get("mesh_resolution", 512))
+        if cd is not None:
+            metrics["chamfer"] = cd["chamfer"]
+        if note:
+            notes.append(note)
+    eval_seconds = time.perf_counter() - t0
+    return {**{m: metrics.get(m) for m in METRICS}, "status": "done", "steps": metrics["steps"],
+            "train_seconds": round(metrics["train_seconds"], 1), "eval_seconds": round(eval_seconds, 1),
+            "seconds": round(metrics["train_seconds"] + eval_seconds, 1), "notes": notes}
+
+
+def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scenes: list[str] | None = None,
+              minutes: float | None = None, seeds: list[int] | None = None, device: str | None = None,
+              overrides: list[str] | None = None, max_steps: int | None = None, max_views: int = 0,
+              mesh_resolution: int = 512, chamfer_points: int = 1_000_000, dtu_eval: Path | None = None,
+              command: str | None = None, progress: bool = True) -> dict[str, Any]:
+    """Train and evaluate every (scene, configuration, seed) of table ``table_name`` found under ``data``; returns
+    the content of OUT/reproduce.json. ``minutes`` is each run's time budget (cpu scale: 10 unless given; paper
+    scale: the preset's step schedule unless given); ``overrides`` and ``max_steps`` apply to every run."""
+    table = get_table(table_name)
+    if scale not in SCALES:
+        raise AnisdfError(f"--scale must be one of {', '.join(SCALES)}, not '{scale}'")
+    seeds = list(seeds) if seeds else [0]
+    if len(set(seeds)) != len(seeds):
+        raise AnisdfError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
+    if scale == "cpu" and minutes is None:
+        minutes = 10.0
+    found = find_scenes(table, data, scenes)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = out / "reproduce.json"
+    old_rows: list[dict[str, Any]] = []
+    if json_path.is_file():
+        try:
+            old = json.loads(json_path.read_text())
+        except json.JSONDecodeError as e:
+            raise AnisdfError(f"{json_path}: not valid JSON ({e}); move it away to start afresh") from None
+        for key, want in (("table", table.name), ("scale", scale)):
+            if old.get(key) != want:
+                raise AnisdfError(f"{json_path}: made with {key} '{old.get(key)}', not '{want}'; choose another --out")
+        old_rows = old.get("rows", [])
+    done = {(r["scene"], r["config"], r.get("seed", 0)): r for r in old_rows}
+    command = command or "anisdf reproduce " + shlex.join(
+        [table.name, "--data", str(data), "--out", str(out), "--scale", scale])
+    result: dict[str, Any] = {
+        "table": table.name, "source": table.source, "scale": scale,
+        "preset": table.preset if scale == "paper" else CPU_PRESET, "minutes": minutes,
+        "chamfer_unit": table.chamfer_unit, "command": command, "machine": machine_info(device),
+        "rows": list(old_rows), "means": {}}
+    plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
+    _write(out, table, result)
+    eval_opts = {"max_views": max_views, "mesh_resolution": mesh_resolution, "chamfer_points": chamfer_points}
+    for i, (name, path, config, seed) in enumerate(plan, 1):
+        tag = f"[{i}/{len(plan)}] {name} {config} seed {seed}"
+        if (name, config, seed) in done:
+            log.info("%s: already in %s, skipped", tag, json_path)
+            continue
+        preset, ovr = run_settings(table, name, config, scale, seed, overrides or [])
+        run = _run_dir(out, name, config, seed)
+        log.info("%s: training %s (preset %s %s)", tag, run, preset, " ".join(ovr))
+        row = {"scene": name, "config": config, "seed": seed, "paper": table.paper_row(name, config),
+               "run": str(run), "device": result["machine"]["gpu"] or result["machine"]["cpu"],
+               **_train_and_eval(path, run, preset, ovr, table, name, minutes, max_steps,
+                                                  device, progress, eval_opts, dtu_eval)}
+        row["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
+        row = {k: row.get(k) for k in ("scene", "config", "seed", *METRICS, "paper", "seconds", "train_seconds",
+                                       "eval_seconds", "steps", "status", "device", "run", "finished", "notes")}
+        result["rows"].append(row)
+        log.info("%s: %s", tag, ", ".join(f"{m} {row[m]:.4g}" for m in METRICS if row[m] is not None)
+                 or row["status"])
+        _write(out, table, result)
+    _write(out, table, result)
+    return result
+
+
+def _mean(values: list[float | None]) -> float | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    return sum(vals) / len(vals) if vals else None
+
+
+def means(table: PaperTable, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per configuration: our mean over its rows (scenes and seeds), the paper's mean over the same scenes (where it
+    gives a figure for each) and the paper's own mean (Table 4 for the ablation; the tables' average rows)."""
+    res: dict[str, Any] = {}
+    for config in table.configs:
+        rs = [r for r in rows if r["config"] == config]
+        if not rs:
+            continue
+        scenes = sorted({r["scene"] for r in rs})
+        papers = [table.paper_row(s, config) for s in scenes]
+        same = {m: _mean([p[m] for p in papers]) if all(p and p[m] is not None for p in papers) else None
+                for m in METRICS}
+        own = table.means.get(config) if table.name == "ablation" else table.means.get("all")
+        res[config] = {"n_rows": len(rs), "scenes": scenes, "ours": {m: _mean([r[m] for r in rs]) for m in METRICS},
+                       "paper_same_scenes": same, "paper_table_mean": own}
+    return res
+
+
+def _fmt(metric: str, value: Any, unit: str) -> str:
+    if value is None:
+        return "-"
+    if metric == "chamfer" and unit != "mm":
+        return f"{value * 1e3:.2f}"
+    return f"{value:.3f}" if metric == "ssim" else f"{value:.2f}"
+
+
+def markdown(table: PaperTable, result: dict[str, Any]) -> str:
+    """reproduce.md: one line per row (ours | paper for each metric), the means per configuration, the machine and
+    the command line."""
+    rows, unit = result["rows"], table.chamfer_unit
+    shown = [m for m in METRICS if any(r[m] is not None or (r["paper"] or {}).get(m) is not None for r in rows)]
+    names = {"psnr": "PSNR dB", "ssim": "SSIM", "normal_mae_deg": "normal MAE deg",
+             "chamfer": "Chamfer mm" if unit == "mm" else "Chamfer 1e-3"}
+    m = result["machine"]
+    lines = [f"# Reproducing {table.source}", "",
+             f"Command: `{result['command']}`  ",
+             f"Machine: {m['gpu'] or 'no GPU'}; CPU {m['cpu']} ({m['cpu_threads']} threads); torch {m['torch']}  ",
+             f"Scale: {result['scale']} (preset {result['preset']}"
+             + (f", {result['minutes']:g} min per run)" if result["minutes"] else ", the preset's step schedule)"),
+             ""]
+    head = ["scene", "config", "seed", *[f"{names[x]} {w}" for x in shown for w in ("ours", "paper")], "minutes",
+            "status"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        paper = r["paper"] or {}
+        cells = [r["scene"], r["config"], str(r["seed"])]
+        for x in shown:
+            cells += [_fmt(x, r[x], unit), _fmt(x, paper.get(x), unit)]
+        cells += [f"{r['seconds'] / 60:.1f}" if r["seconds"] is not None else "-", r["status"]]
+        lines.append("| " + " | ".join(cells) + " |")
+    mean = result["means"]
+    if mean:
+        lines += ["", "Means over scenes" + (" and seeds" if len({r["seed"] for r in rows}) > 1 else "")
+                  + " per configuration (paper: over the same scenes, and the paper's own mean"
+                  + (", Table 4, over its 8 scenes)" if table.name == "ablation" else " over all its scenes)"), ""]
+        head = ["config", "rows", *[f"{names[x]} {w}" for x in shown for w in ("ours", "paper same", "paper all")]]
+        lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for config, s in mean.items():
+            cells = [config, str(s["n_rows"])]
+            for x in shown:
+                cells += [_fmt(x, s["ours"][x], unit), _fmt(x, s["paper_same_scenes"][x], unit),
+                          _fmt(x, (s["paper_table_mean"] or {}).get(x), unit)]
+            lines.append("| " + " | ".join(cells) + " |")
+        groups = {g: v for g, v in table.means.items() if g != "all"} if table.name != "ablation" else {}
+        if groups:
+            lines += ["", "The paper's means per group: " + "; ".join(
+                f"{g} " + ", ".join(f"{names[x]} {_fmt(x, v, unit)}" for x, v in ms.items())
+                for g, ms in groups.items())]
+    notes = [f"- {r['scene']} {r['config']} seed {r['seed']}: {n}" for r in rows for n in r.get("notes") or []]
+    if notes:
+        lines += ["", "Notes:", "", *notes]
+    return "\n".join(lines) + "\n"
+
+
+def _write(out: Path, table: PaperTable, result: dict[str, Any]) -> None:
+    result["means"] = means(table, result["rows"])
+    write_text_atomic(out / "reproduce.json", json.dumps(result, indent=2))
+    write_text_atomic(out / "reproduce.md", markdown(table, result))
