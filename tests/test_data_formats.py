@@ -116,6 +116,25 @@ def test_rgba_masks_and_normals(tmp_path: Path) -> None:
     assert set(np.unique(llff.masks.numpy())) == {0, 255}
 
 
+@pytest.mark.parametrize("suffix", ["_normal.png", "_normal_0001.png"])
+def test_reference_normal_maps_under_both_public_names(tmp_path: Path, suffix: str) -> None:
+    """Shiny Blender's r_i_normal.png and NeRF-synthetic's r_i_normal_0001.png: world-space (n + 1) / 2."""
+    from anisdf.data.testscenes import _render
+
+    truth = write_test_scene(tmp_path / "b", "nerf-synthetic", width=24, height=20, normal_suffix=suffix)
+    assert sorted(p.name for p in (tmp_path / "b" / "test").iterdir() if "normal" in p.name) == sorted(
+        p.stem + suffix for p in truth.image_paths if p.parent.name == "test")
+    scene = load_scene(tmp_path / "b")
+    assert sorted(scene.normals) == sorted(scene.splits["test"])
+    for idx, nmap in scene.normals.items():
+        j = truth.image_paths.index(scene.image_paths[idx])
+        _, cov, ref = _render(truth, j)  # the sphere's true world normals
+        full = cov > 0.99
+        got = nmap[..., :3].double().numpy()[full]
+        cos = np.clip((got * ref[full]).sum(-1), -1, 1)
+        assert full.sum() > 20 and np.degrees(np.arccos(cos)).max() < 1.5  # 8-bit quantisation only
+
+
 def test_downscale_scales_intrinsics_with_pixel_centres(tmp_path: Path) -> None:
     truth = write_test_scene(tmp_path / "s", "instant-ngp", distortion=DIST, masks=True)
     full = load_scene(tmp_path / "s")

@@ -262,6 +262,36 @@ def test_normal_mae() -> None:
         normal_mae_deg(n, np.concatenate([n, np.zeros((16, 16, 1))], axis=-1))
 
 
+def test_normal_mae_weights_as_ref_nerf() -> None:
+    """Weighted mean as Ref-NeRF's compute_weighted_mae(acc * alpha, n, n_gt), here with known angles."""
+    gt = np.zeros((4, 4, 3))
+    gt[..., 2] = 1.0
+    pred = np.zeros((4, 4, 3))
+    angles = np.array([0.0, 30.0, 60.0, 90.0])[None, :].repeat(4, axis=0)  # per column
+    pred[..., 0], pred[..., 2] = np.sin(np.radians(angles)), np.cos(np.radians(angles))
+    opacity = np.ones((4, 4))
+    alpha = np.ones((4, 4))
+    alpha[:, 3] = 0.0  # the 90-degree column is background in the ground truth
+    opacity[:, 2] = 0.5  # the 60-degree column is half transparent in the render
+    w = opacity * alpha
+    expected = (0 + 30 + 0.5 * 60) / 2.5
+    assert normal_mae_deg(pred, gt, weights=w) == pytest.approx(expected, abs=1e-9)
+    # the same as Ref-NeRF's formula (arccos of the clipped dot product) on random normals, up to its clip
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(20, 30, 3)), rng.normal(size=(20, 30, 3))
+    wr = rng.random((20, 30)) * (rng.random((20, 30)) > 0.3)
+    an, bn = (v / np.linalg.norm(v, axis=-1, keepdims=True) for v in (a, b))
+    one_eps = 1 - np.finfo(np.float32).eps
+    ref = (wr * np.arccos(np.clip((an * bn).sum(-1), -one_eps, one_eps))).sum() / wr.sum() * 180 / np.pi
+    assert normal_mae_deg(a, b, weights=wr) == pytest.approx(ref, abs=0.03)
+    with pytest.raises(AnisdfError):
+        normal_mae_deg(pred, gt, weights=np.zeros((4, 4)))
+    with pytest.raises(ValueError):
+        normal_mae_deg(pred, gt, weights=-w)
+    with pytest.raises(ValueError):
+        normal_mae_deg(pred, gt, weights=np.ones((3, 4)))
+
+
 def test_normal_png_from_dataset() -> None:
     path = DATA / "bunny_plastic" / "test" / "r_0_normal.png"
     if not path.is_file():

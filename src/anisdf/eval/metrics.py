@@ -174,14 +174,17 @@ def decode_normal_png(array: np.ndarray) -> np.ndarray:
     return out
 
 
-def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLike | None = None) -> float:
-    """Mean angular error in degrees between two normal maps over foreground pixels.
+def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLike | None = None,
+                   weights: ArrayLike | None = None) -> float:
+    """Mean angular error in degrees between two normal maps, a weighted mean over the foreground.
 
     ``pred_normals``: [H, W, 3] (or [H, W, 4], extra channel ignored). ``gt_normals``: [H, W, 3] or the
-    reference layout [H, W, 4] (xyz + coverage). The foreground is ``mask`` when given, otherwise
-    ``coverage > 0.5``. Both maps are normalised; the angle is computed as ``2 atan2(|a - b|, |a + b|)``
-    (Kahan), accurate near 0 and 180 degrees unlike ``acos`` of the clamped dot product, and exactly 0
-    for identical normals. A zero-length prediction counts as 90 degrees.
+    reference layout [H, W, 4] (xyz + coverage). Each pixel counts with its weight: ``weights`` ([H, W], >= 0)
+    when given, as Ref-NeRF's ``compute_weighted_mae`` (its eval.py passes rendered opacity x ground-truth
+    alpha); else 1 on ``mask``; else 1 where the reference coverage > 0.5. Both maps are normalised; the angle is
+    ``2 atan2(|a - b|, |a + b|)`` (Kahan), accurate near 0 and 180 degrees, and exactly 0 for identical normals
+    (Ref-NeRF's ``arccos`` of the dot product clipped to 1 - eps(float32) floors each pixel at 0.028 degrees). A
+    zero-length prediction counts as 90 degrees.
     """
     p, g = _as_float_tensor(pred_normals), _as_float_tensor(gt_normals)
     g = g.to(p.device)
@@ -189,18 +192,28 @@ def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLi
         raise ValueError(
             f"normal maps must be HxWx3/4 of one size, got {tuple(p.shape)} and {tuple(g.shape)}"
         )
-    if mask is not None:
-        m = _as_mask(mask, tuple(p.shape[:2]), p.device)
+    if weights is not None:
+        w = _as_float_tensor(weights).to(p.device)
+        if w.dim() == 3 and w.shape[-1] == 1:
+            w = w[..., 0]
+        if tuple(w.shape) != tuple(p.shape[:2]):
+            raise ValueError(f"weights shape {tuple(w.shape)} does not match normal maps {tuple(p.shape[:2])}")
+        if bool((w < 0).any()) or not bool(torch.isfinite(w).all()):
+            raise ValueError("normal_mae_deg: weights must be finite and non-negative")
+    elif mask is not None:
+        w = _as_mask(mask, tuple(p.shape[:2]), p.device).to(torch.float64)
     elif g.shape[-1] == 4:
-        m = g[..., 3] > 0.5
+        w = (g[..., 3] > 0.5).to(torch.float64)
     else:
-        raise ValueError("normal_mae_deg needs a mask or a reference map with a coverage channel")
+        raise ValueError("normal_mae_deg needs weights, a mask or a reference map with a coverage channel")
+    m = w > 0
     if not bool(m.any()):
-        raise AnisdfError("normal_mae_deg: no foreground pixels")
+        raise AnisdfError("normal_mae_deg: no foreground pixels (all weights are zero)")
     a = F.normalize(p[..., :3][m], dim=-1, eps=1e-12)
     b = F.normalize(g[..., :3][m], dim=-1, eps=1e-12)
     angle = 2.0 * torch.atan2(torch.linalg.norm(a - b, dim=-1), torch.linalg.norm(a + b, dim=-1))
-    return float(torch.rad2deg(angle).mean())
+    wm = w[m]
+    return float(torch.rad2deg((angle * wm).sum() / wm.sum()))
 
 
 def chamfer_main(a: str, b: str, n_points: int = 1_000_000, seed: int = 0) -> float:
