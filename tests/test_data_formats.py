@@ -17,6 +17,7 @@ from PIL import Image
 
 from anisdf.data import detect_format, load_scene
 from anisdf.data.testscenes import write_test_scene
+from anisdf.errors import DataError
 
 DIST = (0.08, -0.03, 0.004, -0.003)
 CASES = [
@@ -133,6 +134,23 @@ def test_reference_normal_maps_under_both_public_names(tmp_path: Path, suffix: s
         got = nmap[..., :3].double().numpy()[full]
         cos = np.clip((got * ref[full]).sum(-1), -1, 1)
         assert full.sum() > 20 and np.degrees(np.arccos(cos)).max() < 1.5  # 8-bit quantisation only
+
+
+def test_one_split_reloaded_in_a_given_normalisation(tmp_path: Path) -> None:
+    """What eval does: the test views alone, at another resolution, in the frame training found."""
+    write_test_scene(tmp_path / "s", "colmap", n_images=17)
+    train = load_scene(tmp_path / "s", downscale=2)
+    test = load_scene(tmp_path / "s", split="test", to_world=train.to_world)
+    ids = train.splits["test"]
+    assert test.splits["test"] == [0, 1, 2] and not test.splits["train"] and len(ids) == 3
+    assert [p.name for p in test.image_paths] == [train.image_paths[i].name for i in ids]
+    np.testing.assert_array_equal(test.to_world, train.to_world)
+    assert torch.allclose(test.cameras.c2w, train.cameras.c2w[ids])
+    assert torch.allclose(test.cameras.fx, 2 * train.cameras.fx[ids]) and (test.width, test.height) == (16, 12)
+    with pytest.raises(DataError, match="split 'val' is empty"):
+        load_scene(tmp_path / "s", split="val", to_world=train.to_world)
+    with pytest.raises(ValueError):
+        load_scene(tmp_path / "s", split="test")
 
 
 def test_downscale_scales_intrinsics_with_pixel_centres(tmp_path: Path) -> None:

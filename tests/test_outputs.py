@@ -110,8 +110,10 @@ def test_eval_never_changes_the_mesh_silently(trained_run, toy_scene, tmp_path, 
     (run / "mesh.json").unlink()
     assert main(["eval", str(run), *gt, "--max-views", "1"]) == 2
     assert "no mesh.json" in capsys.readouterr().err
-    # eval without a reference mesh neither needs nor touches one
+    # eval without a reference mesh neither needs nor touches one, and says so if mesh options come without it
     assert main(["eval", str(run), "--max-views", "1"]) == 0
+    assert main(["eval", str(run), "--max-views", "1", "--re-extract"]) == 2
+    assert "--gt-mesh" in capsys.readouterr().err
 
 
 def test_eval_holds_out_every_8th_view_at_the_dataset_resolution(tmp_path, capsys):
@@ -128,7 +130,7 @@ def test_eval_holds_out_every_8th_view_at_the_dataset_resolution(tmp_path, capsy
                  "--no-progress", *fast, "data.downscale=2"]) == 0
     assert main(["eval", str(out)]) == 0
     res = json.loads((out / "eval.json").read_text())
-    assert [r["image"] for r in res["per_view"]] == names[::8] == ["r_0.png", "r_15.png", "r_7.png"]
+    assert [r["image"] for r in res["per_view"]] == names[::8] == ["r_0.png", "r_16.png", "r_9.png"]
     p = res["protocol"]
     assert p["held_out"] and p["view_selection"].startswith("every 8th image in name order")
     assert p["train_downscale"] == 2.0 and p["eval_downscale"] == 1.0 and p["image_size"] == [16, 12]

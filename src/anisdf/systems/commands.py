@@ -271,12 +271,15 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
         raise AnisdfError(f"--eval-downscale must be a positive number, got {eval_downscale}")
     if chamfer_points <= 0:
         raise AnisdfError(f"--chamfer-points must be positive, got {chamfer_points}")
+    requested = {"resolution": mesh_resolution, "remove_floaters": remove_floaters, "remove_inner": remove_inner}
+    if gt_mesh is None and (re_extract or any(v is not None for v in requested.values())):
+        raise AnisdfError("--re-extract, --mesh-resolution, --remove-floaters and --remove-inner choose the mesh the "
+                          "Chamfer distance scores: pass --gt-mesh too")
     dev = pick_device(device or "auto")
     if gt_mesh is not None:
         gt = load_mesh(gt_mesh)  # fail early on a bad reference mesh
     cfg, model, ck = load_run(run, dev)
     step = int(ck["state"]["step"])
-    requested = {"resolution": mesh_resolution, "remove_floaters": remove_floaters, "remove_inner": remove_inner}
     mesh_info = _mesh_for_eval(run, step, requested, re_extract) if gt_mesh is not None else None
     scene = _scene_for_run(run, cfg, ck, downscale=eval_downscale, split=split)
     data = RayDataset(scene, split, device=dev, background=eval_background(scene))
