@@ -309,7 +309,11 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
             weights = gt_alpha
             if normal_mask == "refnerf":
                 weights = gt_alpha * np.clip(res["maps"]["opacity"][..., 0], 0.0, 1.0)
-            row["normal_mae_deg"] = normal_mae_deg(res["maps"]["normal"], ref_np[..., :3], weights=weights)
+            if float(weights.sum()) > 0:
+                row["normal_mae_deg"] = normal_mae_deg(res["maps"]["normal"], ref_np[..., :3], weights=weights)
+            else:  # Ref-NeRF's 0 / 0: nothing rendered where the object is
+                log.warning("eval: view %d (%s) has no pixel with weight > 0 for the normal MAE (%s); left out", i,
+                            scene.image_paths[ids[i]].name, normal_mask)
             image = scene.image_paths[ids[i]]
             found = find_normal_map(image)
             if found is not None:
