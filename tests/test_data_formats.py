@@ -17,6 +17,7 @@ from PIL import Image
 
 from anisdf.data import detect_format, load_scene
 from anisdf.data.testscenes import write_test_scene
+from anisdf.errors import DataError
 
 DIST = (0.08, -0.03, 0.004, -0.003)
 CASES = [
@@ -114,6 +115,42 @@ def test_rgba_masks_and_normals(tmp_path: Path) -> None:
     llff = load_scene(tmp_path / "l")
     assert llff.background == "opaque" and llff.alpha is None and llff.masks is not None
     assert set(np.unique(llff.masks.numpy())) == {0, 255}
+
+
+@pytest.mark.parametrize("suffix", ["_normal.png", "_normal_0001.png"])
+def test_reference_normal_maps_under_both_public_names(tmp_path: Path, suffix: str) -> None:
+    """Shiny Blender's r_i_normal.png and NeRF-synthetic's r_i_normal_0001.png: world-space (n + 1) / 2."""
+    from anisdf.data.testscenes import _render
+
+    truth = write_test_scene(tmp_path / "b", "nerf-synthetic", width=24, height=20, normal_suffix=suffix)
+    assert sorted(p.name for p in (tmp_path / "b" / "test").iterdir() if "normal" in p.name) == sorted(
+        p.stem + suffix for p in truth.image_paths if p.parent.name == "test")
+    scene = load_scene(tmp_path / "b")
+    assert sorted(scene.normals) == sorted(scene.splits["test"])
+    for idx, nmap in scene.normals.items():
+        j = truth.image_paths.index(scene.image_paths[idx])
+        _, cov, ref = _render(truth, j)  # the sphere's true world normals
+        full = cov > 0.99
+        got = nmap[..., :3].double().numpy()[full]
+        cos = np.clip((got * ref[full]).sum(-1), -1, 1)
+        assert full.sum() > 20 and np.degrees(np.arccos(cos)).max() < 1.5  # 8-bit quantisation only
+
+
+def test_one_split_reloaded_in_a_given_normalisation(tmp_path: Path) -> None:
+    """What eval does: the test views alone, at another resolution, in the frame training found."""
+    write_test_scene(tmp_path / "s", "colmap", n_images=17)
+    train = load_scene(tmp_path / "s", downscale=2)
+    test = load_scene(tmp_path / "s", split="test", to_world=train.to_world)
+    ids = train.splits["test"]
+    assert test.splits["test"] == [0, 1, 2] and not test.splits["train"] and len(ids) == 3
+    assert [p.name for p in test.image_paths] == [train.image_paths[i].name for i in ids]
+    np.testing.assert_array_equal(test.to_world, train.to_world)
+    assert torch.allclose(test.cameras.c2w, train.cameras.c2w[ids])
+    assert torch.allclose(test.cameras.fx, 2 * train.cameras.fx[ids]) and (test.width, test.height) == (16, 12)
+    with pytest.raises(DataError, match="split 'val' is empty"):
+        load_scene(tmp_path / "s", split="val", to_world=train.to_world)
+    with pytest.raises(ValueError):
+        load_scene(tmp_path / "s", split="test")
 
 
 def test_downscale_scales_intrinsics_with_pixel_centres(tmp_path: Path) -> None:

@@ -72,24 +72,44 @@ def _smooth(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
     return np.stack(chans, axis=-1)
 
 
-@pytest.mark.parametrize("kind", ["random", "smooth"])
-@pytest.mark.parametrize("shape", [(32, 32), (41, 57)])
-def test_ssim_matches_skimage(kind: str, shape: tuple[int, int]) -> None:
-    rng = np.random.default_rng(1)
+def _ssim_pair(kind: str, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     h, w = shape
+    if kind == "gray":
+        rng = np.random.default_rng(2)
+        a = rng.random((h, w))
+        return a, np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+    rng = np.random.default_rng(1)
     if kind == "random":
         a = rng.random((h, w, 3))
-        b = np.clip(a + rng.normal(0, 0.2, a.shape), 0, 1)
-    else:
-        a = _smooth(rng, h, w)
-        b = np.clip(0.9 * a + 0.05 + rng.normal(0, 0.03, a.shape), 0, 1)
-    ref = structural_similarity(
-        a, b, channel_axis=-1, data_range=1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False
-    )
-    got = ssim(torch.tensor(a, dtype=torch.float32), b)
-    assert abs(got - ref) < 1e-4
-    assert ref < 0.99  # the pair is genuinely different
+        return a, np.clip(a + rng.normal(0, 0.2, a.shape), 0, 1)
+    a = _smooth(rng, h, w)
+    return a, np.clip(0.9 * a + 0.05 + rng.normal(0, 0.03, a.shape), 0, 1)
+
+
+# SSIM of these pairs by the hand-written implementation anisdf used before it called scikit-image (separable
+# 11x11 Gaussian "valid" convolution in float64, sigma 1.5, population covariances, mean over channels), computed
+# with that code before it was deleted: the switch changed no number beyond 1e-15.
+OLD_SSIM = {
+    ("random", (32, 32)): 0.8192024002197034,
+    ("random", (41, 57)): 0.8204037938225615,
+    ("smooth", (32, 32)): 0.9867334282589509,
+    ("smooth", (41, 57)): 0.9735788347963054,
+    ("gray", (23, 19)): 0.9314993753223252,
+}
+
+
+@pytest.mark.parametrize(("kind", "shape"), list(OLD_SSIM))
+def test_ssim_is_skimage_and_keeps_the_previous_numbers(kind: str, shape: tuple[int, int]) -> None:
+    a, b = _ssim_pair(kind, shape)
+    got = ssim(torch.tensor(a, dtype=torch.float64), b)
+    assert got == pytest.approx(OLD_SSIM[(kind, shape)], abs=1e-12)
+    ref = structural_similarity(a, b, channel_axis=-1 if a.ndim == 3 else None, data_range=1,
+                                gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+    assert got == pytest.approx(ref, abs=1e-12)
+    assert got < 0.99  # the pair is genuinely different
     assert ssim(a, a) == pytest.approx(1.0, abs=1e-12)
+    u8 = np.round(a * 255).astype(np.uint8)  # integer images are scaled by 1/255
+    assert ssim(u8, b) == pytest.approx(ssim(u8 / 255.0, b), abs=1e-12)
 
 
 def test_ssim_rejects_tiny_images() -> None:
@@ -240,6 +260,36 @@ def test_normal_mae() -> None:
     assert normal_mae_deg(pred, gt_xy, mask=np.ones((16, 16), dtype=bool)) == pytest.approx(45.0, abs=1e-6)
     with pytest.raises(AnisdfError):
         normal_mae_deg(n, np.concatenate([n, np.zeros((16, 16, 1))], axis=-1))
+
+
+def test_normal_mae_weights_as_ref_nerf() -> None:
+    """Weighted mean as Ref-NeRF's compute_weighted_mae(acc * alpha, n, n_gt), here with known angles."""
+    gt = np.zeros((4, 4, 3))
+    gt[..., 2] = 1.0
+    pred = np.zeros((4, 4, 3))
+    angles = np.array([0.0, 30.0, 60.0, 90.0])[None, :].repeat(4, axis=0)  # per column
+    pred[..., 0], pred[..., 2] = np.sin(np.radians(angles)), np.cos(np.radians(angles))
+    opacity = np.ones((4, 4))
+    alpha = np.ones((4, 4))
+    alpha[:, 3] = 0.0  # the 90-degree column is background in the ground truth
+    opacity[:, 2] = 0.5  # the 60-degree column is half transparent in the render
+    w = opacity * alpha
+    expected = (0 + 30 + 0.5 * 60) / 2.5
+    assert normal_mae_deg(pred, gt, weights=w) == pytest.approx(expected, abs=1e-9)
+    # the same as Ref-NeRF's formula (arccos of the clipped dot product) on random normals, up to its clip
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(20, 30, 3)), rng.normal(size=(20, 30, 3))
+    wr = rng.random((20, 30)) * (rng.random((20, 30)) > 0.3)
+    an, bn = (v / np.linalg.norm(v, axis=-1, keepdims=True) for v in (a, b))
+    one_eps = 1 - np.finfo(np.float32).eps
+    ref = (wr * np.arccos(np.clip((an * bn).sum(-1), -one_eps, one_eps))).sum() / wr.sum() * 180 / np.pi
+    assert normal_mae_deg(a, b, weights=wr) == pytest.approx(ref, abs=0.03)
+    with pytest.raises(AnisdfError):
+        normal_mae_deg(pred, gt, weights=np.zeros((4, 4)))
+    with pytest.raises(ValueError):
+        normal_mae_deg(pred, gt, weights=-w)
+    with pytest.raises(ValueError):
+        normal_mae_deg(pred, gt, weights=np.ones((3, 4)))
 
 
 def test_normal_png_from_dataset() -> None:

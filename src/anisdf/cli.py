@@ -46,7 +46,7 @@ def cmd_extract_mesh(args: argparse.Namespace) -> int:
     from anisdf.systems.commands import extract_mesh
 
     path = extract_mesh(Path(args.run), resolution=args.resolution, fmt=args.format, device=args.device,
-                        keep_floaters=args.keep_floaters, keep_inner=args.keep_inner)
+                        remove_floaters=args.remove_floaters, remove_inner=args.remove_inner)
     print(path)
     return 0
 
@@ -65,7 +65,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     metrics = evaluate(Path(args.run), split=args.split, max_views=args.max_views,
                        gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None, device=args.device,
-                       chamfer_points=args.chamfer_points, mesh_resolution=args.mesh_resolution)
+                       chamfer_points=args.chamfer_points, mesh_resolution=args.mesh_resolution,
+                       remove_floaters=args.remove_floaters, remove_inner=args.remove_inner,
+                       re_extract=args.re_extract, eval_downscale=args.eval_downscale,
+                       normal_mask=args.normal_mask, chamfer_seed=args.chamfer_seed)
     print(json.dumps(metrics, indent=2))
     return 0
 
@@ -166,9 +169,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("run")
     s.add_argument("--resolution", type=int, default=512)
     s.add_argument("--format", choices=["ply", "obj", "glb"], default="ply")
-    s.add_argument("--keep-floaters", action="store_true", help="keep small disconnected pieces")
-    s.add_argument("--keep-inner", action="store_true",
-                   help="keep surfaces around pockets enclosed inside the object (no camera outside sees them)")
+    s.add_argument("--remove-floaters", action="store_true",
+                   help="drop pieces under 1%% of the largest one's faces (default: the mesh is not cleaned)")
+    s.add_argument("--remove-inner", action="store_true",
+                   help="drop surfaces around pockets enclosed inside the object (no camera outside sees them)")
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_extract_mesh)
 
@@ -185,9 +189,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("run")
     s.add_argument("--split", default="test")
     s.add_argument("--max-views", type=int, default=0)
+    s.add_argument("--eval-downscale", type=float, default=1.0,
+                   help="render and score at the dataset's resolution divided by this (default 1, whatever "
+                        "data.downscale training used)")
+    s.add_argument("--normal-mask", choices=["refnerf", "alpha"], default="refnerf",
+                   help="normal MAE weights: rendered opacity x ground-truth alpha (Ref-NeRF), or the alpha alone")
     s.add_argument("--gt-mesh", default=None, help="reference mesh for the Chamfer distance")
     s.add_argument("--chamfer-points", type=int, default=1_000_000)
-    s.add_argument("--mesh-resolution", type=int, default=512)
+    s.add_argument("--chamfer-seed", type=int, default=0, help="seed of the prediction's points (reference: +1)")
+    mesh_note = "; the mesh extract-mesh wrote is scored as it is, this must match it (or pass --re-extract)"
+    s.add_argument("--mesh-resolution", type=int, default=None,
+                   help="marching cubes resolution when eval extracts the mesh (default 512)" + mesh_note)
+    s.add_argument("--remove-floaters", action="store_true", default=None,
+                   help="clean small pieces when eval extracts the mesh (default: not cleaned)" + mesh_note)
+    s.add_argument("--remove-inner", action="store_true", default=None,
+                   help="drop enclosed inner shells when eval extracts the mesh (default: kept)" + mesh_note)
+    s.add_argument("--re-extract", action="store_true",
+                   help="extract a new RUN/mesh.ply (and mesh.json) even when extract-mesh wrote one")
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_eval)
 

@@ -134,7 +134,8 @@ def _backdrop(h: int, w: int, i: int) -> np.ndarray:
     return np.stack([xx / max(w - 1, 1), yy / max(h - 1, 1), np.full((h, w), (i % 5) / 5.0)], axis=-1) * 0.6
 
 
-def _write_view_images(truth: SceneTruth, rgba: bool, masks_dir: Path | None, normals: set[int]) -> None:
+def _write_view_images(truth: SceneTruth, rgba: bool, masks_dir: Path | None, normals: set[int],
+                       normal_suffix: str = "_normal.png") -> None:
     for i, path in enumerate(truth.image_paths):
         rgb, cov, nmap = _render(truth, i)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -149,7 +150,7 @@ def _write_view_images(truth: SceneTruth, rgba: bool, masks_dir: Path | None, no
                 masks_dir / (path.stem + ".png"))
         if i in normals:
             enc = np.dstack([_u8(0.5 * (nmap + 1.0) * (cov[..., None] > 0)), _u8(cov)])
-            Image.fromarray(enc, "RGBA").save(path.with_name(path.stem + "_normal.png"))
+            Image.fromarray(enc, "RGBA").save(path.with_name(path.stem + normal_suffix))
 
 
 def write_test_scene(
@@ -164,6 +165,7 @@ def write_test_scene(
     radius: float = 2.5,
     center: tuple[float, float, float] = (0.3, -0.2, 0.1),
     sphere_radius: float = 0.5,
+    normal_suffix: str = "_normal.png",
 ) -> SceneTruth:
     """Write a tiny dataset of format ``fmt`` into ``root`` (created) and return its ground truth.
 
@@ -171,7 +173,8 @@ def write_test_scene(
     of ``sphere_radius`` sits at ``center``. ``distortion`` (k1, k2, p1, p2) applies to instant-ngp and
     COLMAP (OPENCV model; PINHOLE without it); ``binary`` picks COLMAP's .bin or .txt; ``masks`` writes
     object masks (always for NeuS; nerf-synthetic uses alpha). nerf-synthetic holds out views 1 and N-2 as
-    its test split, with normal maps.
+    its test split, with world-space normal maps ``(n + 1) / 2`` named ``<image stem><normal_suffix>``
+    (``_normal.png`` as Shiny Blender, ``_normal_0001.png`` as NeRF-synthetic's test split).
     """
     if fmt not in TEST_FORMATS:
         raise ValueError(f"unknown format {fmt!r}")
@@ -210,7 +213,7 @@ def write_test_scene(
             paths.append(root / folder / (f"{i:06d}.png" if fmt == "neus" else f"r_{i}.png"))
     truth = SceneTruth(root, fmt, c2w_a, intr_a, dist, width, height, paths, c, sphere_radius)
     mask_dir = {"neus": root / "mask"}.get(fmt, root / "masks" if masks and fmt != "nerf-synthetic" else None)
-    _write_view_images(truth, fmt == "nerf-synthetic", mask_dir, test_views)
+    _write_view_images(truth, fmt == "nerf-synthetic", mask_dir, test_views, normal_suffix)
     {"nerf-synthetic": _write_blender, "neus": _write_neus, "instant-ngp": _write_ngp, "llff": _write_llff,
      "colmap": _write_colmap}[fmt](truth, binary)
     return truth

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
+from skimage.metrics import structural_similarity
 
 from anisdf.errors import AnisdfError, DataError
 
@@ -81,45 +82,26 @@ def psnr(pred: ArrayLike, gt: ArrayLike, mask: ArrayLike | None = None) -> float
     return -10.0 * math.log10(mse)
 
 
-def _gaussian_kernel1d(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
-    k = torch.exp(-(x**2) / (2.0 * sigma**2))
-    return k / k.sum()
+SSIM_WINDOW = 11
+"""Side of skimage's Gaussian SSIM window for sigma 1.5 (truncated at 3.5 sigma): 2 * int(3.5 * 1.5 + 0.5) + 1."""
 
 
-def ssim(pred: ArrayLike, gt: ArrayLike, win_size: int = 11, sigma: float = 1.5) -> float:
+def ssim(pred: ArrayLike, gt: ArrayLike) -> float:
     """Structural similarity (Wang et al. 2004) with the standard settings, mean over channels.
 
-    Gaussian window 11x11 with sigma 1.5, K1 = 0.01, K2 = 0.03, data range 1, population (not sample)
-    covariances; the SSIM map is averaged over the pixels whose window lies fully inside the image.
-    This equals ``skimage.metrics.structural_similarity(pred, gt, channel_axis=-1, data_range=1,
-    gaussian_weights=True, sigma=1.5, use_sample_covariance=False)``.
+    ``skimage.metrics.structural_similarity`` with a Gaussian window (sigma 1.5, truncated to 11x11),
+    K1 = 0.01, K2 = 0.03, data range 1 and population (not sample) covariances; the SSIM map is averaged
+    over the pixels whose window lies fully inside the image. HxW images are single-channel.
     """
     p, g = _as_float_tensor(pred), _as_float_tensor(gt)
-    g = g.to(p.device)
     _check_pair(p, g)
-    if p.dim() == 2:
-        p, g = p[..., None], g[..., None]
-    h, w, c = p.shape
-    if h < win_size or w < win_size:
-        raise ValueError(f"ssim needs images of at least {win_size}x{win_size} pixels, got {h}x{w}")
-    c1, c2 = 0.01**2, 0.03**2
-    k = _gaussian_kernel1d(win_size, sigma).to(p.device)
-    kx = k.view(1, 1, 1, win_size).expand(c, 1, 1, win_size)
-    ky = k.view(1, 1, win_size, 1).expand(c, 1, win_size, 1)
-
-    def blur(t: torch.Tensor) -> torch.Tensor:  # separable "valid" Gaussian filter, per channel
-        return F.conv2d(F.conv2d(t, kx, groups=c), ky, groups=c)
-
-    x = p.permute(2, 0, 1)[None]
-    y = g.permute(2, 0, 1)[None]
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x**2
-    syy = blur(y * y) - mu_y**2
-    sxy = blur(x * y) - mu_x * mu_y
-    num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
-    den = (mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2)
-    return float((num / den).mean())
+    h, w = p.shape[:2]
+    if h < SSIM_WINDOW or w < SSIM_WINDOW:
+        raise ValueError(f"ssim needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels, got {h}x{w}")
+    return float(structural_similarity(
+        p.cpu().numpy(), g.cpu().numpy(), gaussian_weights=True, sigma=1.5,
+        use_sample_covariance=False, data_range=1.0, channel_axis=-1 if p.dim() == 3 else None,
+    ))
 
 
 def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
@@ -192,14 +174,17 @@ def decode_normal_png(array: np.ndarray) -> np.ndarray:
     return out
 
 
-def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLike | None = None) -> float:
-    """Mean angular error in degrees between two normal maps over foreground pixels.
+def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLike | None = None,
+                   weights: ArrayLike | None = None) -> float:
+    """Mean angular error in degrees between two normal maps, a weighted mean over the foreground.
 
     ``pred_normals``: [H, W, 3] (or [H, W, 4], extra channel ignored). ``gt_normals``: [H, W, 3] or the
-    reference layout [H, W, 4] (xyz + coverage). The foreground is ``mask`` when given, otherwise
-    ``coverage > 0.5``. Both maps are normalised; the angle is computed as ``2 atan2(|a - b|, |a + b|)``
-    (Kahan), accurate near 0 and 180 degrees unlike ``acos`` of the clamped dot product, and exactly 0
-    for identical normals. A zero-length prediction counts as 90 degrees.
+    reference layout [H, W, 4] (xyz + coverage). Each pixel counts with its weight: ``weights`` ([H, W], >= 0)
+    when given, as Ref-NeRF's ``compute_weighted_mae`` (its eval.py passes rendered opacity x ground-truth
+    alpha); else 1 on ``mask``; else 1 where the reference coverage > 0.5. Both maps are normalised; the angle is
+    ``2 atan2(|a - b|, |a + b|)`` (Kahan), accurate near 0 and 180 degrees, and exactly 0 for identical normals
+    (Ref-NeRF's ``arccos`` of the dot product clipped to 1 - eps(float32) floors each pixel at 0.028 degrees). A
+    zero-length prediction counts as 90 degrees.
     """
     p, g = _as_float_tensor(pred_normals), _as_float_tensor(gt_normals)
     g = g.to(p.device)
@@ -207,18 +192,28 @@ def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLi
         raise ValueError(
             f"normal maps must be HxWx3/4 of one size, got {tuple(p.shape)} and {tuple(g.shape)}"
         )
-    if mask is not None:
-        m = _as_mask(mask, tuple(p.shape[:2]), p.device)
+    if weights is not None:
+        w = _as_float_tensor(weights).to(p.device)
+        if w.dim() == 3 and w.shape[-1] == 1:
+            w = w[..., 0]
+        if tuple(w.shape) != tuple(p.shape[:2]):
+            raise ValueError(f"weights shape {tuple(w.shape)} does not match normal maps {tuple(p.shape[:2])}")
+        if bool((w < 0).any()) or not bool(torch.isfinite(w).all()):
+            raise ValueError("normal_mae_deg: weights must be finite and non-negative")
+    elif mask is not None:
+        w = _as_mask(mask, tuple(p.shape[:2]), p.device).to(torch.float64)
     elif g.shape[-1] == 4:
-        m = g[..., 3] > 0.5
+        w = (g[..., 3] > 0.5).to(torch.float64)
     else:
-        raise ValueError("normal_mae_deg needs a mask or a reference map with a coverage channel")
+        raise ValueError("normal_mae_deg needs weights, a mask or a reference map with a coverage channel")
+    m = w > 0
     if not bool(m.any()):
-        raise AnisdfError("normal_mae_deg: no foreground pixels")
+        raise AnisdfError("normal_mae_deg: no foreground pixels (all weights are zero)")
     a = F.normalize(p[..., :3][m], dim=-1, eps=1e-12)
     b = F.normalize(g[..., :3][m], dim=-1, eps=1e-12)
     angle = 2.0 * torch.atan2(torch.linalg.norm(a - b, dim=-1), torch.linalg.norm(a + b, dim=-1))
-    return float(torch.rad2deg(angle).mean())
+    wm = w[m]
+    return float(torch.rad2deg((angle * wm).sum() / wm.sum()))
 
 
 def chamfer_main(a: str, b: str, n_points: int = 1_000_000, seed: int = 0) -> float:

@@ -92,12 +92,25 @@ def _md_table(rows: Sequence[dict[str, Any]], cols: list[str], mean: dict[str, A
     return "\n".join(lines)
 
 
+def flatten(d: dict[str, Any], prefix: str = "") -> list[dict[str, Any]]:
+    """``{"a": {"b": 1}, "c": [1, 2]}`` -> rows ``{"setting": "a.b", "value": 1}``, ``{"setting": "c", ...}``."""
+    rows: list[dict[str, Any]] = []
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            rows.extend(flatten(v, key + "."))
+        else:
+            rows.append({"setting": key, "value": ", ".join(map(str, v)) if isinstance(v, list | tuple) else v})
+    return rows
+
+
 def write_report(
     out_dir: Path,
     metrics: dict[str, Any],
     per_view: list[dict[str, Any]],
     images: list[Path],
     title: str = "anisdf evaluation",
+    protocol: dict[str, Any] | None = None,
 ) -> tuple[Path, Path]:
     """Write ``out_dir/report.html`` and ``out_dir/report.md``; returns both paths.
 
@@ -106,6 +119,7 @@ def write_report(
     ``{"view": "r_0", "psnr": ..., "ssim": ..., "normal_mae": ...}``
     (columns are the union of keys in first-seen order; a mean row is added for columns numeric in
     every row). ``images``: side-by-side pictures, referenced by path relative to ``out_dir``.
+    ``protocol``: how the numbers were measured (nested dict, shown flattened as "a.b" rows).
     Both files are written atomically.
     """
     out_dir = Path(out_dir)
@@ -122,6 +136,11 @@ def write_report(
         f"<h1>{html.escape(title)}</h1>",
         "<h2>Summary</h2>",
         _html_table(head_rows, ["metric", "value"], None) if head_rows else "<p>No metrics.</p>",
+    ]
+    proto_rows = flatten(protocol) if protocol else []
+    if proto_rows:
+        parts += ["<h2>Protocol</h2>", _html_table(proto_rows, ["setting", "value"], None)]
+    parts += [
         "<h2>Per view</h2>",
         _html_table(per_view, cols, mean) if cols else "<p>No per-view results.</p>",
     ]
@@ -137,6 +156,8 @@ def write_report(
 
     md = [f"# {title}", "", "## Summary", ""]
     md.append(_md_table(head_rows, ["metric", "value"], None) if head_rows else "No metrics.")
+    if proto_rows:
+        md += ["", "## Protocol", "", _md_table(proto_rows, ["setting", "value"], None)]
     md += ["", "## Per view", ""]
     md.append(_md_table(per_view, cols, mean) if cols else "No per-view results.")
     if rels:

@@ -16,15 +16,22 @@ from anisdf.errors import AnisdfError
 log = logging.getLogger("anisdf")
 
 
-def _scene_for_run(run: Path, cfg, ck: dict[str, Any]):
-    from anisdf.data.dataparsers import load_scene
-
+def _data_path(run: Path, ck: dict[str, Any]) -> Path:
     info_path = run / "run.json"
     data = json.loads(info_path.read_text())["data"] if info_path.is_file() else ck.get("data")
     if not data or not Path(data).exists():
         raise AnisdfError(f"{run}: the dataset this run was trained on ({data}) is no longer there")
-    return load_scene(Path(data), downscale=cfg.data.downscale, max_images=cfg.data.max_images,
-                      images_dir=cfg.data.images_dir)
+    return Path(data)
+
+
+def _scene_for_run(run: Path, cfg, ck: dict[str, Any], downscale: float | None = None, split: str | None = None):
+    """The run's dataset in the frame the model was trained in (the checkpoint's normalisation), at the training
+    resolution or at ``downscale``, every view or only ``split``'s."""
+    from anisdf.data.dataparsers import load_scene
+
+    return load_scene(_data_path(run, ck), downscale=cfg.data.downscale if downscale is None else downscale,
+                      max_images=cfg.data.max_images if split in (None, "train") else 0,
+                      images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]))
 
 
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
@@ -69,25 +76,81 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
     return trainer.fit()
 
 
+MESH_SIDECAR = "mesh.json"
+FLOATER_MIN_FRACTION = 0.01
+"""``remove_floaters``: components under this fraction of the largest one's face count are dropped."""
+MESH_DEFAULTS: dict[str, Any] = {"resolution": 512, "remove_floaters": False, "remove_inner": False}
+"""What ``extract-mesh`` and ``eval`` use unless told otherwise: the mesh as marching cubes found it, not cleaned."""
+
+
 def extract_mesh(run: Path, resolution: int = 512, fmt: str = "ply", device: str | None = None,
-                 keep_floaters: bool = False, keep_inner: bool = False, progress: bool = True) -> Path:
-    """Marching cubes on the SDF, vertex colours from the view branch, written in the dataset's frame."""
-    from anisdf.export.mesh import color_vertices, remove_floaters, save_mesh, to_world
+                 remove_floaters: bool = False, remove_inner: bool = False, progress: bool = True,
+                 written_by: str = "extract-mesh") -> Path:
+    """Marching cubes on the SDF, vertex colours from the view branch, written in the dataset's frame as
+    RUN/mesh.<fmt>, with its settings in RUN/mesh.json (which ``eval`` reads). Not cleaned unless asked:
+    ``remove_floaters`` drops small disconnected pieces, ``remove_inner`` the shells around pockets enclosed inside
+    the object (docs/evaluation.md)."""
+    from anisdf.export.atomic import write_text_atomic
+    from anisdf.export.mesh import color_vertices, save_mesh, to_world
     from anisdf.export.mesh import extract_mesh as mc
+    from anisdf.export.mesh import remove_floaters as drop_floaters
     from anisdf.systems.trainer import load_run, pick_device
 
     dev = pick_device(device or "auto")
     cfg, model, ck = load_run(run, dev)
     mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress,
-              keep_inner=keep_inner)
-    if not keep_floaters:
-        mesh = remove_floaters(mesh)
+              keep_inner=not remove_inner)
+    if remove_floaters:
+        mesh = drop_floaters(mesh, min_fraction=FLOATER_MIN_FRACTION)
     mesh = color_vertices(mesh, model.diffuse_color, device=dev)
     mesh = to_world(mesh, np.asarray(ck["to_world"], dtype=np.float64))
     path = run / f"mesh.{fmt}"
     save_mesh(mesh, path, fmt)
-    log.info("mesh: %d vertices, %d faces -> %s", len(mesh.vertices), len(mesh.faces), path)
+    info = {"mesh": path.name, "written_by": written_by, "step": int(ck["state"]["step"]),
+            "resolution": int(resolution), "remove_floaters": bool(remove_floaters),
+            "floater_min_fraction": FLOATER_MIN_FRACTION if remove_floaters else None,
+            "remove_inner": bool(remove_inner), "two_pass": True, "margin": 0.1, "frame": "dataset",
+            "vertices": len(mesh.vertices), "faces": len(mesh.faces)}
+    write_text_atomic(run / MESH_SIDECAR, json.dumps(info, indent=2) + "\n")
+    log.info("mesh: %d vertices, %d faces -> %s (%s)", len(mesh.vertices), len(mesh.faces), path,
+             _describe_mesh(info))
     return path
+
+
+def _describe_mesh(info: dict[str, Any]) -> str:
+    return (f"resolution {info['resolution']}, floaters {'removed' if info['remove_floaters'] else 'kept'}, "
+            f"inner shells {'removed' if info['remove_inner'] else 'kept'}, step {info['step']}")
+
+
+def _mesh_for_eval(run: Path, step: int, requested: dict[str, Any], re_extract: bool) -> dict[str, Any] | None:
+    """The mesh ``eval`` scores: the one ``extract-mesh`` wrote (RUN/mesh.json) when there is one, else None (extract
+    one). Raises when that mesh does not fit (another step, other settings asked for, no sidecar) and
+    ``re_extract`` is off, rather than scoring or replacing it silently."""
+    sidecar = run / MESH_SIDECAR
+    if re_extract:
+        return None
+    if sidecar.is_file():
+        try:
+            info = json.loads(sidecar.read_text())
+            mesh_name = str(info["mesh"])
+        except (json.JSONDecodeError, KeyError, TypeError) as e:
+            raise AnisdfError(f"{sidecar}: unreadable ({e}); pass --re-extract to write a new mesh") from None
+        mesh_path = run / mesh_name
+        if not mesh_path.is_file():
+            raise AnisdfError(f"{sidecar} names {mesh_name}, which is missing; run extract-mesh or pass --re-extract")
+        if info.get("step") != step:
+            raise AnisdfError(f"{mesh_path} was extracted at step {info.get('step')} but the checkpoint is at step "
+                              f"{step}; run extract-mesh again or pass --re-extract")
+        for key, value in requested.items():
+            if value is not None and info.get(key) != value:
+                raise AnisdfError(f"{mesh_path} was extracted with {key}={info.get(key)} ({MESH_SIDECAR}), not "
+                                  f"{value}; pass --re-extract to replace it, or drop the option to score it")
+        return {**info, "path": str(mesh_path)}
+    old = [p for p in (run / "mesh.ply", run / "mesh.obj", run / "mesh.glb") if p.is_file()]
+    if old:
+        raise AnisdfError(f"{old[0]} has no {MESH_SIDECAR} (an older anisdf wrote it; its settings are unknown); "
+                          "pass --re-extract to replace it")
+    return None
 
 
 def render(run: Path, split: str = "test", video: bool = False, max_views: int = 0, downscale: int = 1,
@@ -160,13 +223,41 @@ def render_orbit(model, scene, cfg, path: Path, n_frames: int, downscale: int, d
     return write_video(frames, path)
 
 
+NORMAL_MASKS = ("refnerf", "alpha")
+"""Pixel weights of the normal MAE: refnerf = rendered opacity x ground-truth alpha (Ref-NeRF's eval.py),
+alpha = ground-truth alpha alone (holes in the render count in full)."""
+
+
+def _view_selection(scene, split: str) -> str:
+    """How the dataset's parser chose the views of ``split`` (for the protocol record)."""
+    if split == "test" and scene.format == "nerf-synthetic" and (scene.root / "transforms_test.json").is_file():
+        return "transforms_test.json"
+    if split == "test":
+        return "every 8th image in name order from the first (LLFF hold-out; Mip-NeRF 360, Table 5)"
+    if split == "train" and scene.format != "nerf-synthetic":
+        return "the images not held out (all but every 8th in name order)"
+    return f"transforms_{split}.json" if scene.format == "nerf-synthetic" else split
+
+
 def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path | None = None,
-             device: str | None = None, chamfer_points: int = 1_000_000, mesh_resolution: int = 512,
+             device: str | None = None, chamfer_points: int = 1_000_000, mesh_resolution: int | None = None,
+             remove_floaters: bool | None = None, remove_inner: bool | None = None, re_extract: bool = False,
+             eval_downscale: float = 1.0, normal_mask: str = "refnerf", chamfer_seed: int = 0,
              progress: bool = True) -> dict[str, Any]:
     """PSNR / SSIM (and normal MAE where the dataset has normal maps) on a split, Chamfer against ``gt_mesh``;
-    writes RUN/eval.json, RUN/eval/ images and a report (protocols: docs/evaluation.md)."""
+    writes RUN/eval.json (with a "protocol" object recording every choice), RUN/eval/ images and a report
+    (protocols: docs/evaluation.md).
+
+    Views are rendered at the dataset's own resolution divided by ``eval_downscale`` (1: the images on disk, in
+    ``data.images_dir`` when the run reads another folder), whatever ``data.downscale`` training used. The Chamfer
+    distance scores the mesh ``extract-mesh`` wrote (RUN/mesh.json) when there is one; eval extracts one (same
+    defaults: ``mesh_resolution`` 512, not cleaned) only when there is none, or with ``re_extract``.
+    ``mesh_resolution`` / ``remove_floaters`` / ``remove_inner`` left at None mean "as the existing mesh, else the
+    defaults"; given, they must match the existing mesh (else pass ``re_extract``).
+    """
     from tqdm import tqdm
 
+    from anisdf.data.dataparsers.blender import find_normal_map
     from anisdf.data.rays import RayDataset, eval_background
     from anisdf.eval.metrics import chamfer_distance, load_mesh, normal_mae_deg, psnr, ssim
     from anisdf.eval.report import write_report
@@ -174,18 +265,37 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     from anisdf.systems.rendering import panel, render_view
     from anisdf.systems.trainer import load_run, pick_device
 
+    if normal_mask not in NORMAL_MASKS:
+        raise AnisdfError(f"--normal-mask must be one of {', '.join(NORMAL_MASKS)}, got {normal_mask!r}")
+    if not (eval_downscale > 0 and np.isfinite(eval_downscale)):
+        raise AnisdfError(f"--eval-downscale must be a positive number, got {eval_downscale}")
+    if chamfer_points <= 0:
+        raise AnisdfError(f"--chamfer-points must be positive, got {chamfer_points}")
+    requested = {"resolution": mesh_resolution, "remove_floaters": remove_floaters, "remove_inner": remove_inner}
+    if gt_mesh is None and (re_extract or any(v is not None for v in requested.values())):
+        raise AnisdfError("--re-extract, --mesh-resolution, --remove-floaters and --remove-inner choose the mesh the "
+                          "Chamfer distance scores: pass --gt-mesh too")
     dev = pick_device(device or "auto")
     if gt_mesh is not None:
         gt = load_mesh(gt_mesh)  # fail early on a bad reference mesh
     cfg, model, ck = load_run(run, dev)
-    scene = _scene_for_run(run, cfg, ck)
-    if not scene.splits.get(split):
-        raise AnisdfError(f"split '{split}' is empty for {scene.root}; choose one of {sorted(scene.splits)}")
+    step = int(ck["state"]["step"])
+    mesh_info = _mesh_for_eval(run, step, requested, re_extract) if gt_mesh is not None else None
+    scene = _scene_for_run(run, cfg, ck, downscale=eval_downscale, split=split)
     data = RayDataset(scene, split, device=dev, background=eval_background(scene))
     ids = scene.splits[split]
     n = len(data) if max_views <= 0 else min(max_views, len(data))
+    held_out = split != "train" and cfg.data.train_split != "all"
+    if not held_out:
+        log.warning("eval: the %s views were used in training (data.train_split=%s): not a held-out score",
+                    split, cfg.data.train_split)
+    log.info("eval: %d %s views at %dx%d (dataset resolution / %g; training used / %g)", n, split, scene.width,
+             scene.height, eval_downscale, cfg.data.downscale)
+    alpha_source = ("masks" if scene.masks is not None else "alpha" if scene.alpha is not None
+                    else "normal-map coverage")  # as Scene.coverage() picks them
     per_view: list[dict[str, Any]] = []
     images: list[Path] = []
+    normal_names: set[str] = set()
     for i in tqdm(range(n), desc=f"eval {split}", unit="view", disable=not progress):
         res = render_view(model, data, i, scene, cfg.renderer.eval_chunk_rays)
         pred = np.clip(res["maps"]["rgb"], 0.0, 1.0)
@@ -194,7 +304,20 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
         ref = scene.normals.get(ids[i])
         if ref is not None:
             ref_np = ref.cpu().numpy() if isinstance(ref, torch.Tensor) else np.asarray(ref)
-            row["normal_mae_deg"] = normal_mae_deg(res["maps"]["normal"], ref_np[..., :3], ref_np[..., 3] > 0.5)
+            cover = scene.coverage()
+            gt_alpha = cover[ids[i]].float().numpy() / 255.0 if cover is not None else ref_np[..., 3]
+            weights = gt_alpha
+            if normal_mask == "refnerf":
+                weights = gt_alpha * np.clip(res["maps"]["opacity"][..., 0], 0.0, 1.0)
+            if float(weights.sum()) > 0:
+                row["normal_mae_deg"] = normal_mae_deg(res["maps"]["normal"], ref_np[..., :3], weights=weights)
+            else:  # Ref-NeRF's 0 / 0: nothing rendered where the object is
+                log.warning("eval: view %d (%s) has no pixel with weight > 0 for the normal MAE (%s); left out", i,
+                            scene.image_paths[ids[i]].name, normal_mask)
+            image = scene.image_paths[ids[i]]
+            found = find_normal_map(image)
+            if found is not None:
+                normal_names.add("<image>" + found.name[len(image.stem):])
         per_view.append(row)
         img_path = run / "eval" / f"{i:03d}.png"
         save_image(img_path, panel(res))
@@ -207,14 +330,49 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     maes = [r["normal_mae_deg"] for r in per_view if "normal_mae_deg" in r]
     if maes:
         metrics["normal_mae_deg"] = float(np.mean(maes))
+    background = eval_background(scene)
+    protocol: dict[str, Any] = {
+        "split": split, "views": n, "view_selection": _view_selection(scene, split), "held_out": held_out,
+        "eval_downscale": float(eval_downscale), "train_downscale": float(cfg.data.downscale),
+        "images_dir": cfg.data.images_dir or None, "image_size": [scene.width, scene.height],
+        "background": ("white: renders on white, ground-truth RGBA (or masked photos) composited on white"
+                       if background == "white" else "none: photos as photographed, the model's learned background"),
+        "psnr": "mean over views of -10 log10(MSE), float renders in [0, 1] against 8-bit ground truth",
+        "ssim": "skimage structural_similarity: gaussian_weights, sigma 1.5, population covariance, data_range 1, "
+                "mean over channels; mean over views",
+        "normal_mae": None, "mesh": None, "chamfer": None,
+    }
+    if maes:
+        protocol["normal_mae"] = {
+            "views": len(maes), "reference": sorted(normal_names), "space": "world, (n + 1) / 2 in RGB",
+            "mask": normal_mask,
+            "weights": ("rendered opacity x ground-truth " + alpha_source if normal_mask == "refnerf"
+                        else "ground-truth " + alpha_source),
+        }
     if gt_mesh is not None:
-        mesh_path = extract_mesh(run, resolution=mesh_resolution, device=str(dev), progress=progress)
-        cd = chamfer_distance(load_mesh(mesh_path), gt, n_points=chamfer_points, seed=0)
+        if mesh_info is None:
+            settings = {k: MESH_DEFAULTS[k] if v is None else v for k, v in requested.items()}
+            mesh_path = extract_mesh(run, resolution=int(settings["resolution"]), device=str(dev),
+                                     remove_floaters=bool(settings["remove_floaters"]),
+                                     remove_inner=bool(settings["remove_inner"]), progress=progress,
+                                     written_by="eval --re-extract" if re_extract else "eval")
+            mesh_info = {**json.loads((run / MESH_SIDECAR).read_text()), "path": str(mesh_path)}
+            log.info("eval: extracted %s (%s)", mesh_path, _describe_mesh(mesh_info))
+        else:
+            log.info("eval: scoring %s written by %s (%s)", mesh_info["path"], mesh_info.get("written_by", "?"),
+                     _describe_mesh(mesh_info))
+        mesh_path = Path(mesh_info["path"])
+        cd = chamfer_distance(load_mesh(mesh_path), gt, n_points=chamfer_points, seed=chamfer_seed)
         metrics.update(chamfer=cd["chamfer"], chamfer_accuracy=cd["accuracy"],
                        chamfer_completeness=cd["completeness"], chamfer_points=chamfer_points,
                        gt_mesh=str(gt_mesh), mesh=str(mesh_path))
-    metrics.update(steps=int(ck["state"]["step"]), train_seconds=float(ck["state"]["train_seconds"]),
-                   preset=cfg.preset)
-    (run / "eval.json").write_text(json.dumps({**metrics, "per_view": per_view}, indent=2))
-    write_report(run, metrics, per_view, images)
-    return metrics
+        protocol["mesh"] = {k: mesh_info.get(k) for k in ("path", "written_by", "step", "resolution",
+                                                          "remove_floaters", "floater_min_fraction", "remove_inner",
+                                                          "two_pass", "margin", "frame")}
+        protocol["chamfer"] = {"points": chamfer_points, "seed_pred": chamfer_seed, "seed_gt": chamfer_seed + 1,
+                               "gt_mesh": str(gt_mesh), "units": "dataset",
+                               "distance": "(accuracy + completeness) / 2, nearest neighbours both ways"}
+    metrics.update(steps=step, train_seconds=float(ck["state"]["train_seconds"]), preset=cfg.preset)
+    (run / "eval.json").write_text(json.dumps({**metrics, "protocol": protocol, "per_view": per_view}, indent=2))
+    write_report(run, metrics, per_view, images, protocol=protocol)
+    return {**metrics, "protocol": protocol}

@@ -31,7 +31,7 @@ def run_demo(out: Path, minutes: float = 4.0, device: str | None = None) -> dict
     train(data, run, preset=None if resume else "cpu-quick", overrides=None if resume else DEMO_OVERRIDES,
           max_minutes=minutes, device=device, resume=resume)
     metrics = evaluate(run, gt_mesh=data / "gt_mesh.ply", chamfer_points=200_000, mesh_resolution=256,
-                       device=device)
+                       re_extract=True, device=device)  # a mesh of this run's last step, written beside it
     renders = render(run, split="test", video=True, max_views=4, device=device, n_video_frames=36)
     report = run / "report.md"
     print("\n" + report.read_text().split("## Per view")[0].strip())

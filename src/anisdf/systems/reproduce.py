@@ -131,7 +131,10 @@ def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], ta
     # DTU is scored by the official protocol only (below), never against a mesh of the scene folder
     gt = data / "gt_mesh.ply" if table.name != "dtu" else None
     has_gt = gt is not None and gt.is_file()
-    metrics = evaluate(run, gt_mesh=gt if has_gt else None, device=device, progress=progress, **eval_opts)
+    # mesh options choose the mesh that is scored: without a reference mesh there is none to choose
+    mesh_keys = ("mesh_resolution", "chamfer_points")
+    opts = eval_opts if has_gt else {k: v for k, v in eval_opts.items() if k not in mesh_keys}
+    metrics = evaluate(run, gt_mesh=gt if has_gt else None, device=device, progress=progress, **opts)
     if gt is not None and not has_gt and any(p["chamfer"] is not None for p in table.scenes.values()):
         notes.append(f"Chamfer not measured: no {gt.name} in {data}")
     if table.name == "dtu":

@@ -7,7 +7,10 @@ images and returns a normalised :class:`~anisdf.data.scene.Scene`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from anisdf.data.dataparsers import blender, colmap, instant_ngp, llff, neus
 from anisdf.data.dataparsers._common import ParsedScene
@@ -57,18 +60,46 @@ def parse_dataset(path: str | Path) -> ParsedScene:
     return PARSERS[detect_format(root)](root)
 
 
-def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, images_dir: str = "") -> Scene:
+def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, images_dir: str = "",
+               split: str | None = None, to_world: np.ndarray | None = None) -> Scene:
     """Load the dataset in folder ``path`` (format auto-detected) as a normalised :class:`Scene`.
 
     ``downscale`` divides the image size (antialiased resize; intrinsics scaled to match);
     ``max_images`` > 0 keeps at most that many training images, evenly spread over the train split;
     ``images_dir`` reads the same file names from another sub-folder (Mip-NeRF 360's ``images_4``), the intrinsics
-    following the size found on disk.
+    following the size found on disk. ``to_world`` imposes a known normalisation (a trained run's, so that a scene
+    reloaded at another resolution lands in the frame the model was trained in) instead of finding the region of
+    interest; ``split`` then keeps only that split's views (the others are not decoded).
     """
     parsed = parse_dataset(path)
     if images_dir:
         parsed.image_paths = [_other_folder(p, Path(path) / images_dir) for p in parsed.image_paths]
+    if to_world is not None:
+        parsed.to_world = np.asarray(to_world, dtype=np.float64)
+    if split is not None:
+        if to_world is None:
+            raise ValueError("load_scene: split needs to_world (the normalisation cannot be found from one split)")
+        parsed = _only_split(parsed, split)
     return build_scene(parsed, downscale=downscale, max_images=max_images)
+
+
+def _only_split(parsed: ParsedScene, split: str) -> ParsedScene:
+    """``parsed`` reduced to the views of ``split`` (renumbered; an empty train split when ``split`` is another)."""
+    keep = parsed.splits.get(split) or []
+    if not keep:
+        raise DataError(parsed.root, f"split '{split}' is empty; the dataset has "
+                        f"{', '.join(k for k, v in parsed.splits.items() if v)}")
+    new = {old: i for i, old in enumerate(keep)}
+    return replace(
+        parsed,
+        image_paths=[parsed.image_paths[i] for i in keep],
+        c2w=parsed.c2w[keep],
+        intrinsics=parsed.intrinsics[keep],
+        splits={"train": [], split: list(range(len(keep)))},
+        distortion=None if parsed.distortion is None else parsed.distortion[keep],
+        mask_paths=None if parsed.mask_paths is None else [parsed.mask_paths[i] for i in keep],
+        normal_paths={new[i]: p for i, p in parsed.normal_paths.items() if i in new},
+    )
 
 
 def _other_folder(image: Path, folder: Path) -> Path:

@@ -2,8 +2,10 @@
 
 Each file holds ``camera_angle_x`` (horizontal field of view, radians) and ``frames`` with ``file_path``
 (with or without extension, relative to the dataset folder) and ``transform_matrix`` (camera-to-world in
-the OpenGL/Blender camera convention, converted here to OpenCV). Reference normal maps ``<image>_normal.png``
-beside test (and val) images are picked up.
+the OpenGL/Blender camera convention, converted here to OpenCV). Reference normal maps beside test (and val)
+images are picked up under the names the public datasets use (:data:`NORMAL_SUFFIXES`): Shiny Blender's
+``r_i_normal.png`` and the original NeRF-synthetic test split's ``r_i_normal_0001.png``. Both hold Blender world-space
+normals as ``(n + 1) / 2`` in RGB (sources and caveats: docs/evaluation.md, "Normals").
 """
 
 from __future__ import annotations
@@ -27,6 +29,19 @@ from anisdf.data.dataparsers._common import (
 from anisdf.errors import DataError
 
 SPLITS = ("train", "val", "test")
+NORMAL_SUFFIXES = ("_normal.png", "_normal_0001.png")
+"""Reference normal map names, ``<image stem><suffix>``, in order of preference: Shiny Blender (Ref-NeRF) writes
+``r_i_normal.png``; NeRF-synthetic's test split has ``r_i_normal_0001.png`` (a Blender File Output node adds the frame
+number)."""
+
+
+def find_normal_map(image: Path) -> Path | None:
+    """The reference normal map beside ``image`` (first of :data:`NORMAL_SUFFIXES` that exists), or None."""
+    for suffix in NORMAL_SUFFIXES:
+        n = image.with_name(image.stem + suffix)
+        if n.is_file():
+            return n
+    return None
 
 
 def resolve_image(root: Path, file_path: str) -> Path:
@@ -80,9 +95,8 @@ def parse(root: Path) -> ParsedScene:
     normal_paths: dict[int, Path] = {}
     for split in ("val", "test"):
         for idx in splits.get(split, []):
-            p = image_paths[idx]
-            n = p.with_name(p.stem + "_normal.png")
-            if n.is_file():
+            n = find_normal_map(image_paths[idx])
+            if n is not None:
                 normal_paths[idx] = n
     return ParsedScene(
         format="nerf-synthetic",
