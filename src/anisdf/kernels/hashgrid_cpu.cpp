@@ -1,6 +1,6 @@
 // CPU multiresolution hash-grid encoding (Mueller et al. 2022) for anisdf.
 //
-// Computes exactly the function of anisdf/fields/hash_encoding.py::hash_encode_reference and its first and
+// Computes exactly the function of anisdf/fields/hash_grid/reference.py::hash_encode_reference and its first and
 // second derivatives (w_k: trilinear weight of corner k, t_k: its table row, R: the level's resolution):
 //   forward          out[n, l*F + f] = sum_k w_k(frac) t_k[f]
 //   backward         grad_table[row_k] += w_k g ;  grad_x += R sum_k <t_k, g> dw_k/dfrac

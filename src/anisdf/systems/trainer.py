@@ -87,7 +87,7 @@ class Trainer:
         # host and copying (randperm of ~250k samples, the occupancy jitter) cost milliseconds a step
         self.gen = torch.Generator(device).manual_seed(cfg.train.seed)
         if cfg.geometry.encoding_backend != "torch":
-            from anisdf.fields.hash_encoding_fast import load_fast_encoder
+            from anisdf.fields.hash_grid import load_fast_encoder
 
             # build (CPU) or compile and check (CUDA) the hash-grid kernels now, not inside the first step;
             # encoding_backend=fast stops here when the device has none
