@@ -61,6 +61,11 @@ def composite_on_white(rgba: ArrayLike) -> np.ndarray:
     return t[..., :3] * a + (1.0 - a)
 
 
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of images in [0, 1] from their mean squared error (floored at 1e-10, i.e. at most 100 dB)."""
+    return -10.0 * math.log10(max(mse, 1e-10))
+
+
 def psnr(pred: ArrayLike, gt: ArrayLike, mask: ArrayLike | None = None) -> float:
     """Peak signal-to-noise ratio in dB for images in [0, 1]: ``-10 log10(MSE)``.
 

@@ -29,6 +29,7 @@ from anisdf.config import Config, config_from_dict
 from anisdf.data.rays import RayDataset, eval_background
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.eval.metrics import psnr_from_mse
 from anisdf.export.atomic import write_text_atomic
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.systems.checkpoint import atomic_save, load_checkpoint
@@ -42,10 +43,6 @@ def pick_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise AnisdfError(f"--device {name}: CUDA is not available in this torch build")
     return torch.device(name)
-
-
-def psnr_from_mse(mse: float) -> float:
-    return -10.0 * math.log10(max(mse, 1e-10))
 
 
 def lr_factor(step: int, cfg: Config) -> float:
