@@ -86,7 +86,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from anisdf.systems.bench import run_bench
+    from anisdf.benchmarks.speed import run_bench
 
     run_bench(as_json=args.json, quick=args.quick, data=Path(args.data) if args.data else None,
               minutes=args.minutes, device=args.device, preset=args.preset)

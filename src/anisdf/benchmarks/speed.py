@@ -1,4 +1,5 @@
-"""``anisdf bench``: encoding and training-step throughput (reference vs fast), peak memory, time to quality.
+"""``anisdf bench`` (the CLI calls :func:`run_bench`): encoding and training-step throughput (reference vs fast),
+peak memory, time to quality.
 
 Speed targets live here, never in timed tests. Results are recorded in benchmarks/RESULTS.md.
 """
