@@ -17,6 +17,7 @@ import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
 
+from anisdf.data.images import composite
 from anisdf.errors import AnisdfError, DataError
 
 ArrayLike = np.ndarray | torch.Tensor
@@ -57,8 +58,7 @@ def composite_on_white(rgba: ArrayLike) -> np.ndarray:
     t = _as_float_tensor(rgba).cpu().numpy()
     if t.shape[-1] != 4:
         raise ValueError(f"expected an HxWx4 RGBA image, got shape {t.shape}")
-    a = t[..., 3:4]
-    return t[..., :3] * a + (1.0 - a)
+    return composite(t[..., :3], t[..., 3:4], 1.0)
 
 
 def psnr_from_mse(mse: float) -> float:
