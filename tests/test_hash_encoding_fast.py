@@ -352,3 +352,29 @@ def test_encoding_benchmark_reports_both_backends(kernel) -> None:
     assert set(row["speedup"]) == {"fwd", "fwd+bwd", "eikonal"} and all(v > 0 for v in row["speedup"].values())
     table = format_table(res)
     assert "speedup" in table and "random-read floor" in table
+
+
+def test_kernel_entry_points_share_one_input_check(kernel) -> None:
+    """Every entry point rejects bad inputs through the one prepare() helper, with a message naming the input."""
+    x = torch.rand(10, 3)
+    table = torch.randn(SMALL.n_params, 2)
+    levels = ops.level_table(SMALL)
+    log2 = SMALL.log2_hashmap_size
+    g = torch.randn(10, SMALL.output_dim)
+    calls = {
+        "forward": lambda xx, tt, gg: kernel.encode_forward(xx, tt, levels, log2),
+        "backward": lambda xx, tt, gg: kernel.encode_backward(gg, xx, tt, levels, log2, True, True),
+        "double backward": lambda xx, tt, gg: kernel.encode_double_backward(gg, xx, tt, torch.ones(10, 3), None,
+                                                                            levels, log2, True, True, True),
+    }
+    for name, call in calls.items():
+        assert call(x, table, g)[0] is not None, name
+        with pytest.raises(RuntimeError, match="hashgrid_cpu: float32 points and table only"):
+            call(x.double(), table, g)
+        with pytest.raises(RuntimeError, match=r"hashgrid_cpu: x must be \[N, 3\]"):
+            call(x[:, :2], table, g)
+        with pytest.raises(RuntimeError, match="hashgrid_cpu: table has too few rows"):
+            call(x, table[:-1], g)
+        if name != "forward":
+            with pytest.raises(RuntimeError, match=r"hashgrid_cpu: incoming gradient g must be \[10, 12\]"):
+                call(x, table, g[:, :-1])
