@@ -8,13 +8,64 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 from anisdf import __version__
 from anisdf.errors import AnisdfError
 
 log = logging.getLogger("anisdf")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's one-line errors (exit code 2): ``anisdf <command>: error: argument --x: ...``."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse ``type=``: an integer >= ``low``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, not {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, not {text!r}")
+        return value
+
+    parse.__name__ = f"integer >= {low}"
+    return parse
+
+
+def float_at_least(low: float, strict: bool = False) -> Callable[[str], float]:
+    """An argparse ``type=``: a finite number >= ``low`` (> ``low`` when ``strict``)."""
+    bound = f"{'>' if strict else '>='} {low:g}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number {bound}, not {text!r}") from None
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"must be a finite number {bound}, not {text!r}")
+        return value
+
+    parse.__name__ = f"number {bound}"
+    return parse
+
+
+def out_folder(text: str) -> str:
+    """An argparse ``type=`` for ``--out``: a folder that may not exist yet, but not an existing file."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is an existing file, not a folder")
+    return text
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -94,7 +145,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
+    p = _Parser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
     p.add_argument("--version", action="version", version=f"anisdf {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -105,9 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("train", help="reconstruct a scene")
     s.add_argument("data", help="dataset folder")
-    s.add_argument("--out", required=True, help="run folder (checkpoints, logs, renders)")
-    s.add_argument("--max-steps", type=int, default=None)
-    s.add_argument("--max-minutes", type=float, default=None,
+    s.add_argument("--out", required=True, type=out_folder, help="run folder (checkpoints, logs, renders)")
+    s.add_argument("--max-steps", type=int_at_least(1), default=None)
+    s.add_argument("--max-minutes", type=float_at_least(0.0), default=None,
                    help="stop cleanly and save after this many minutes of training in all (0: no limit)")
     s.add_argument("--device", default=None, help="auto | cpu | cuda[:N]")
     s.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/last.pt")
@@ -117,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("extract-mesh", help="marching cubes on the SDF -> RUN/mesh.<ext>")
     s.add_argument("run")
-    s.add_argument("--resolution", type=int, default=512)
+    s.add_argument("--resolution", type=int_at_least(2), default=512, help="marching-cubes grid cells per axis")
     s.add_argument("--format", choices=["ply", "obj", "glb"], default="ply")
     s.add_argument("--keep-floaters", action="store_true", help="keep small disconnected pieces")
     s.add_argument("--keep-inner", action="store_true",
@@ -129,31 +180,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("run")
     s.add_argument("--split", default="test")
     s.add_argument("--video", action="store_true", help="also write an orbit video (MP4)")
-    s.add_argument("--max-views", type=int, default=0)
-    s.add_argument("--downscale", type=int, default=1)
+    s.add_argument("--max-views", type=int_at_least(0), default=0, help="at most this many views (0: all)")
+    s.add_argument("--downscale", type=int_at_least(1), default=1)
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_render)
 
     s = sub.add_parser("eval", help="PSNR, SSIM, normal MAE and Chamfer -> RUN/eval.json + report")
     s.add_argument("run")
     s.add_argument("--split", default="test")
-    s.add_argument("--max-views", type=int, default=0)
+    s.add_argument("--max-views", type=int_at_least(0), default=0, help="at most this many views (0: all)")
     s.add_argument("--gt-mesh", default=None, help="reference mesh for the Chamfer distance")
-    s.add_argument("--chamfer-points", type=int, default=1_000_000)
-    s.add_argument("--mesh-resolution", type=int, default=512)
+    s.add_argument("--chamfer-points", type=int_at_least(1), default=1_000_000)
+    s.add_argument("--mesh-resolution", type=int_at_least(2), default=512)
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_eval)
 
     s = sub.add_parser("chamfer", help="Chamfer distance between two meshes (last line)")
     s.add_argument("a")
     s.add_argument("b")
-    s.add_argument("--points", type=int, default=1_000_000)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--points", type=int_at_least(1), default=1_000_000)
+    s.add_argument("--seed", type=int_at_least(0), default=0)
     s.set_defaults(fn=cmd_chamfer)
 
     s = sub.add_parser("demo", help="reconstruct the bundled scene on the CPU in a few minutes")
-    s.add_argument("--out", default="runs/demo")
-    s.add_argument("--minutes", type=float, default=4.0)
+    s.add_argument("--out", default="runs/demo", type=out_folder)
+    s.add_argument("--minutes", type=float_at_least(0.0, strict=True), default=4.0)
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_demo)
 
@@ -161,7 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.add_argument("--quick", action="store_true", help="skip the time-to-PSNR run")
     s.add_argument("--data", default=None, help="scene for time-to-PSNR (default ../shared/data/bunny_plastic)")
-    s.add_argument("--minutes", type=float, default=10.0)
+    s.add_argument("--minutes", type=float_at_least(0.0, strict=True), default=10.0)
     s.add_argument("--device", default="auto", help="auto (CUDA if available) | cpu | cuda[:N]")
     s.add_argument("--preset", default="cpu-quick", help="configuration of the training-step and time-to-PSNR runs")
     s.set_defaults(fn=cmd_bench)
