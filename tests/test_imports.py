@@ -122,6 +122,16 @@ def test_src_anisdf_has_no_import_cycle() -> None:
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
 
 
+def test_layering_of_the_hash_grid_and_the_benchmarks() -> None:
+    """The reference hash grid imports no backend; nothing in the library imports the benchmark package."""
+    graph = import_graph()
+    assert not {m for m in graph["anisdf.fields.hash_grid.reference"] if m.startswith("anisdf.fields.hash_grid")}
+    assert "anisdf.fields.hash_grid.triton" not in graph["anisdf.fields.hash_grid.cpu_kernel"]
+    upward = sorted((a, b) for a, deps in graph.items() for b in deps
+                    if b.startswith("anisdf.benchmarks") and not a.startswith(("anisdf.benchmarks", "anisdf.cli")))
+    assert not upward, f"library modules import the benchmarks: {upward}"
+
+
 def _write(root: Path, files: dict[str, str]) -> None:
     for rel, text in files.items():
         path = root / rel
