@@ -9,6 +9,7 @@ forward + backward 8-18x, an eikonal step 6-13x the reference. A build that fail
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import shutil
@@ -62,7 +63,10 @@ def _build() -> ModuleType:
     if not SOURCE.is_file():
         raise RuntimeError(f"kernel source {SOURCE} is missing")
     flags, tag = _compile_flags()
-    name = f"{_EXT_NAME}_{tag}"
+    # The source's hash in the name: checkouts with different kernel sources (branches, versions) sharing one
+    # extension cache never load or rebuild each other's build (torch only versions a name within a process).
+    digest = hashlib.sha256(SOURCE.read_bytes() + " ".join(flags).encode()).hexdigest()[:10]
+    name = f"{_EXT_NAME}_{tag}_{digest}"
     build_dir = None
     root = os.environ.get("ANISDF_KERNEL_DIR")
     if root:
