@@ -23,10 +23,10 @@ import torch
 
 from anisdf.benchmarks.encoding import sync
 from anisdf.benchmarks.opcount import count_step
+from anisdf.benchmarks.speed import time_train_steps
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.errors import AnisdfError
-from anisdf.systems.bench import time_train_steps
 from anisdf.systems.trainer import Trainer, pick_device
 
 

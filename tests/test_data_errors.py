@@ -170,3 +170,125 @@ def test_inspect_reports_json(scenes: dict[str, Path], tmp_path: Path) -> None:
     Image.new("L", (16, 12)).save(root / "mask" / "000002.png")  # an empty mask only warns
     report = inspect_dataset(root)
     assert any("empty" in w for w in report["warnings"])
+
+
+def _edit_json(path: Path, edit) -> None:
+    meta = json.loads(path.read_text())
+    edit(meta)
+    path.write_text(json.dumps(meta))
+
+
+def _inspect_error(root: Path, capsys: pytest.CaptureFixture[str]) -> str:
+    """``anisdf inspect ROOT`` through the CLI: exit code 2 and one line on stderr, which is returned."""
+    from anisdf.cli import main
+
+    assert main(["inspect", str(root)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+@pytest.mark.parametrize(("key", "value", "words"), [
+    ("fl_x", 0.0, ["frame 3", "focal length fx = 0", "positive"]),
+    ("fl_y", -120.0, ["frame 3", "focal length fy = -120"]),
+    ("w", 0, ["image size w, h = 0, 12", "must be positive"]),  # set for every frame (top level)
+    ("cx", None, []),  # None: replaced below by an impossible camera_angle_x instead
+])
+def test_impossible_camera_in_transforms_json(scenes: dict[str, Path], tmp_path: Path, capsys, key: str,
+                                              value: float | None, words: list[str]) -> None:
+    root = copy(scenes, "instant-ngp", tmp_path)
+
+    def edit(meta: dict) -> None:
+        frame = meta["frames"][3]
+        if value is None:
+            for k in ("fl_x", "fl_y"):
+                meta.pop(k, None)
+                frame.pop(k, None)
+            frame["camera_angle_x"] = 0.0
+        elif key == "w":
+            meta[key] = value
+        else:
+            frame[key] = value
+
+    _edit_json(root / "transforms.json", edit)
+    msg = _inspect_error(root, capsys)
+    assert "transforms.json" in msg, msg
+    for w in words or ["camera_angle_x", "(0, pi)"]:
+        assert w in msg, msg
+
+
+def test_zero_focal_in_nerf_synthetic_and_colmap(scenes: dict[str, Path], tmp_path: Path, capsys) -> None:
+    root = copy(scenes, "nerf-synthetic", tmp_path)
+    _edit_json(root / "transforms_train.json", lambda meta: meta["frames"][1].update(fl_x=0))
+    msg = _inspect_error(root, capsys)
+    assert "transforms_train.json" in msg and "frame 1" in msg and "focal length fx = 0" in msg, msg
+    root = tmp_path / "colmap-txt"
+    write_test_scene(root, "colmap", binary=False)
+    cams = root / "sparse" / "0" / "cameras.txt"
+    lines = cams.read_text().splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln and not ln.startswith("#"))
+    parts = lines[i].split()
+    parts[4] = "0"  # fx
+    lines[i] = " ".join(parts)
+    cams.write_text("\n".join(lines) + "\n")
+    msg = _inspect_error(root, capsys)
+    assert "cameras.txt" in msg and f"camera {parts[0]}" in msg and "focal length fx = 0" in msg, msg
+
+
+def test_llff_bounds_need_near_before_far(scenes: dict[str, Path], tmp_path: Path) -> None:
+    root = copy(scenes, "llff", tmp_path)
+    arr = np.load(root / "poses_bounds.npy")
+    arr[2, 15:] = [5.0, 1.0]
+    np.save(root / "poses_bounds.npy", arr)
+    expect(root, "poses_bounds.npy", "row 2", "near < far")
+
+
+def test_impossible_neus_intrinsics(scenes: dict[str, Path], tmp_path: Path) -> None:
+    from anisdf.data.dataparsers._common import check_camera
+
+    with pytest.raises(DataError, match="cameras_sphere.npz.*world_mat_0.*focal length fy = 0"):
+        check_camera([100.0, 0.0, 8.0, 6.0], None, Path("cameras_sphere.npz"), "world_mat_0")
+    with pytest.raises(DataError, match="principal point"):
+        check_camera([100.0, 100.0, float("inf"), 6.0], (16, 12), Path("x.json"), "frame 0")
+    with pytest.raises(DataError, match="distortion"):
+        check_camera([100.0, 100.0, 8.0, 6.0], (16, 12), Path("x.json"), "frame 0", [0.1, float("nan"), 0, 0])
+    check_camera([100.0, 100.0, 8.0, 6.0], (16, 12), Path("x.json"), "frame 0", [0.1, 0.0, 0, 0])
+
+
+@pytest.mark.parametrize(("argv", "option", "words"), [
+    (["extract-mesh", "RUN", "--resolution", "0"], "--resolution", "integer >= 2"),
+    (["extract-mesh", "RUN", "--resolution", "ten"], "--resolution", "integer >= 2"),
+    (["train", "DATA", "--out", "RUN", "--max-steps", "0"], "--max-steps", "integer >= 1"),
+    (["train", "DATA", "--out", "RUN", "--max-minutes", "-1"], "--max-minutes", "number >= 0"),
+    (["train", "DATA", "--out", "RUN", "--max-minutes", "inf"], "--max-minutes", "finite"),
+    (["render", "RUN", "--downscale", "0"], "--downscale", "integer >= 1"),
+    (["render", "RUN", "--max-views", "-2"], "--max-views", "integer >= 0"),
+    (["eval", "RUN", "--chamfer-points", "0"], "--chamfer-points", "integer >= 1"),
+    (["eval", "RUN", "--mesh-resolution", "1"], "--mesh-resolution", "integer >= 2"),
+    (["chamfer", "a.ply", "b.ply", "--points", "0"], "--points", "integer >= 1"),
+    (["chamfer", "a.ply", "b.ply", "--seed", "-1"], "--seed", "integer >= 0"),
+    (["demo", "--minutes", "0"], "--minutes", "number > 0"),
+    (["bench", "--minutes", "nan"], "--minutes", "finite number > 0"),
+    (["train", "DATA", "--out", "FILE"], "--out", "is an existing file, not a folder"),
+    (["demo", "--out", "FILE"], "--out", "is an existing file, not a folder"),
+])
+def test_impossible_command_arguments(tmp_path: Path, capsys, argv: list[str], option: str, words: str) -> None:
+    from anisdf.cli import main
+
+    (tmp_path / "file.txt").write_text("not a folder")
+    names = {"RUN": str(tmp_path / "run"), "DATA": str(tmp_path), "FILE": str(tmp_path / "file.txt")}
+    with pytest.raises(SystemExit) as info:
+        main([names.get(a, a) for a in argv])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert f"argument {option}: " in err[0] and words in err[0] and f"anisdf {argv[0]}" in err[0], err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_unknown_device_is_a_user_error(tmp_path: Path, capsys) -> None:
+    from anisdf.cli import main
+
+    assert main(["render", str(tmp_path / "run"), "--device", "gpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--device 'gpu'" in err[0], err

@@ -16,8 +16,10 @@ import pytest
 import torch
 
 from anisdf.errors import AnisdfError
-from anisdf.fields import hash_encoding_fast as hef
-from anisdf.fields.hash_encoding import GridSpec, HashGrid, hash_encode_reference
+from anisdf.fields.hash_grid import cpu_kernel, ops
+from anisdf.fields.hash_grid import dispatch as hef
+from anisdf.fields.hash_grid.dispatch import HashGrid
+from anisdf.fields.hash_grid.reference import GridSpec, hash_encode_reference
 
 # Levels 0-1 dense ((R+1)^3 <= 4096), levels 2-5 hashed.
 SMALL = GridSpec(n_levels=6, features_per_level=2, log2_hashmap_size=12, base_resolution=8, per_level_scale=1.5)
@@ -25,9 +27,9 @@ SMALL = GridSpec(n_levels=6, features_per_level=2, log2_hashmap_size=12, base_re
 
 @pytest.fixture(scope="module")
 def kernel() -> object:
-    mod = hef.kernel_module()
+    mod = cpu_kernel.kernel_module()
     if mod is None:
-        reason = hef.kernel_info()["error"] or "disabled by ANISDF_NO_KERNEL"
+        reason = cpu_kernel.kernel_info()["error"] or "disabled by ANISDF_NO_KERNEL"
         print(f"compiled hash-grid kernel unavailable: {reason}")
         pytest.skip(f"compiled hash-grid kernel unavailable: {reason}")
     return mod
@@ -46,11 +48,11 @@ def triton_ops() -> object:
     return mod
 
 
-def _triton_encode(ops: object) -> Callable:
+def _triton_encode(kernel_ops: object) -> Callable:
     device = "cuda" if torch.cuda.is_available() else "cpu"
 
     def encode(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
-        return hef._apply(x.to(device), table.to(device), spec, ops).cpu()
+        return ops.apply_kernels(x.to(device), table.to(device), spec, kernel_ops).cpu()
     # Compiled for a GPU, Triton contracts multiply-adds into FMAs and the table gradient's atomics add in any
     # order, so sums of thousands of terms (point gradients scale with the resolution, 2048 at the finest
     # level) differ from the CPU reference by a few float32 ulps more than the interpreter does. On an H100
@@ -204,7 +206,7 @@ def test_table_gradient_is_skipped_when_only_normals_are_asked(request, backend:
 
     x = torch.rand(500, 3, device=device, requires_grad=True)
     table = torch.nn.Parameter(torch.randn(SMALL.n_params, 2, device=device))
-    enc = hef._apply(x, table, SMALL, Spy())
+    enc = ops.apply_kernels(x, table, SMALL, Spy())
     (n,) = torch.autograd.grad(enc.pow(2).sum(), x, create_graph=True)
     assert calls == [(False, True)]  # (need_table, need_x)
     n.pow(2).sum().backward()
@@ -217,7 +219,7 @@ def test_atomic_and_single_thread_paths_agree(kernel) -> None:
     x = _points(4000, SMALL, gen)
     table = torch.randn(SMALL.n_params, 2, generator=gen)
     g = torch.randn(x.shape[0], SMALL.output_dim, generator=gen)
-    levels = hef._levels(SMALL)
+    levels = ops.level_table(SMALL)
     by_levels = kernel.encode_backward(g, x, table, levels, SMALL.log2_hashmap_size, True, True, 0)
     atomic = kernel.encode_backward(g, x, table, levels, SMALL.log2_hashmap_size, True, True, 2)
     with _one_thread():
@@ -247,13 +249,13 @@ def test_hash_grid_module_uses_the_kernel(kernel, monkeypatch) -> None:
     torch.manual_seed(0)
     grid = HashGrid(SMALL, backend="fast", init_scale=0.1)
     used: list[object] = []
-    real_apply = hef._apply
+    real_apply = ops.apply_kernels
 
-    def spy(x, table, spec, ops):
-        used.append(ops)
-        return real_apply(x, table, spec, ops)
+    def spy(x, table, spec, kernel_ops):
+        used.append(kernel_ops)
+        return real_apply(x, table, spec, kernel_ops)
 
-    monkeypatch.setattr(hef, "_apply", spy)
+    monkeypatch.setattr(hef, "apply_kernels", spy)
     x = torch.rand(300, 3) * 1.2 - 0.1
     expected = hash_encode_reference(x.clamp(0.0, 1.0), grid.table, SMALL)
     _assert_close(grid(x).detach(), expected.detach())
@@ -277,14 +279,14 @@ def test_no_kernel_env_falls_back(monkeypatch) -> None:
 
 def test_build_failure_warns_once_and_falls_back(monkeypatch, caplog) -> None:
     monkeypatch.delenv("ANISDF_NO_KERNEL", raising=False)
-    monkeypatch.setattr(hef, "_state", {"module": None, "error": None, "build_s": None, "name": None,
+    monkeypatch.setattr(cpu_kernel, "_state", {"module": None, "error": None, "build_s": None, "name": None,
                                         "flags": None})
 
     def broken_build():
         raise RuntimeError("Error building extension 'anisdf_hashgrid_cpu_avx2'\nlong compiler output")
 
-    monkeypatch.setattr(hef, "_build", broken_build)
-    with caplog.at_level(logging.WARNING, logger=hef.__name__):
+    monkeypatch.setattr(cpu_kernel, "_build", broken_build)
+    with caplog.at_level(logging.WARNING, logger=cpu_kernel.__name__):
         assert hef.load_fast_encoder() is None
         assert hef.load_fast_encoder() is None
         with pytest.raises(AnisdfError, match="could not be built"):
@@ -307,7 +309,7 @@ def test_triton_failure_warns_once_and_falls_back(monkeypatch, caplog) -> None:
     def broken_check(mod, device):
         raise RuntimeError("self-check failed: values differ from the reference by 0.5 (relative)\nmore")
 
-    monkeypatch.setattr(hef, "_self_check", broken_check)
+    monkeypatch.setattr(hef, "self_check", broken_check)
     with caplog.at_level(logging.WARNING, logger=hef.__name__):
         assert hef.triton_module("cpu") is None
         assert hef.triton_module("cpu") is None
@@ -333,11 +335,11 @@ def test_triton_self_check_catches_a_wrong_kernel(triton_ops) -> None:
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     # The first use may come from a render (no_grad) or a mixed-precision training step (autocast).
     with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
-        hef._self_check(triton_ops, device)
+        hef.self_check(triton_ops, device)
     with torch.inference_mode():
-        hef._self_check(triton_ops, device)
+        hef.self_check(triton_ops, device)
     with pytest.raises(RuntimeError, match="table gradient differ"):
-        hef._self_check(Wrong(), device)
+        hef.self_check(Wrong(), device)
 
 
 def test_encoding_benchmark_reports_both_backends(kernel) -> None:
@@ -350,3 +352,29 @@ def test_encoding_benchmark_reports_both_backends(kernel) -> None:
     assert set(row["speedup"]) == {"fwd", "fwd+bwd", "eikonal"} and all(v > 0 for v in row["speedup"].values())
     table = format_table(res)
     assert "speedup" in table and "random-read floor" in table
+
+
+def test_kernel_entry_points_share_one_input_check(kernel) -> None:
+    """Every entry point rejects bad inputs through the one prepare() helper, with a message naming the input."""
+    x = torch.rand(10, 3)
+    table = torch.randn(SMALL.n_params, 2)
+    levels = ops.level_table(SMALL)
+    log2 = SMALL.log2_hashmap_size
+    g = torch.randn(10, SMALL.output_dim)
+    calls = {
+        "forward": lambda xx, tt, gg: kernel.encode_forward(xx, tt, levels, log2),
+        "backward": lambda xx, tt, gg: kernel.encode_backward(gg, xx, tt, levels, log2, True, True),
+        "double backward": lambda xx, tt, gg: kernel.encode_double_backward(gg, xx, tt, torch.ones(10, 3), None,
+                                                                            levels, log2, True, True, True),
+    }
+    for name, call in calls.items():
+        assert call(x, table, g)[0] is not None, name
+        with pytest.raises(RuntimeError, match="hashgrid_cpu: float32 points and table only"):
+            call(x.double(), table, g)
+        with pytest.raises(RuntimeError, match=r"hashgrid_cpu: x must be \[N, 3\]"):
+            call(x[:, :2], table, g)
+        with pytest.raises(RuntimeError, match="hashgrid_cpu: table has too few rows"):
+            call(x, table[:-1], g)
+        if name != "forward":
+            with pytest.raises(RuntimeError, match=r"hashgrid_cpu: incoming gradient g must be \[10, 12\]"):
+                call(x, table, g[:, :-1])

@@ -12,7 +12,7 @@ from anisdf.config import load_config
 from anisdf.errors import AnisdfError
 from anisdf.fields.asg import asg_encode, asg_frames
 from anisdf.fields.encodings import sh_encoding
-from anisdf.fields.hash_encoding import GridSpec, corner_indices, hash_encode_reference, trilinear_weights
+from anisdf.fields.hash_grid.reference import GridSpec, corner_indices, hash_encode_reference, trilinear_weights
 from anisdf.fields.sdf_field import SDFField
 from anisdf.model_components import losses as L
 from anisdf.model_components.neus_renderer import neus_alpha, packed_weights

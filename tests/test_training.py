@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from anisdf.cli import main
 from anisdf.config import load_config
@@ -231,6 +232,28 @@ def test_cli_train_resume_and_errors(toy_scene, tmp_path, capsys):
     assert len(err) == 1 and "missing" in err[0]
     assert main(["train", str(toy_scene), "--out", str(tmp_path / "r3"), "geometry.bogus=1"]) == 2
     assert "unknown config key" in capsys.readouterr().err
+
+
+def test_resume_accepts_the_runs_own_preset_and_refuses_a_changed_setting(toy_scene, tmp_path, capsys):
+    out = tmp_path / "run"
+    start = ["train", str(toy_scene), "--out", str(out), "--no-progress"]
+    assert main([*start, "--preset", "cpu-quick", "--max-steps", "2", *TINY]) == 0
+    capsys.readouterr()
+    # The same preset and overrides again, plus a train.* change: accepted.
+    assert main([*start, "--resume", "--max-steps", "3", "--preset", "cpu-quick", *TINY, "train.log_every=5"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 3
+    assert yaml.safe_load((out / "config.yaml").read_text())["train"]["log_every"] == 5
+    # An unchanged setting alone (no preset), spelled as the user would: accepted.
+    assert main([*start, "--resume", "--max-steps", "4", "geometry.hidden_dim=32", "geometry.base_resolution=8.0"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 4
+    for extra, key in [(["geometry.hidden_dim=64"], "geometry.hidden_dim"),
+                       (["--preset", "cpu-quick", *TINY, "appearance.kind=pe"], "appearance.kind"),
+                       (["--preset", "cpu-quick"], "data.downscale"),  # the preset without the run's overrides
+                       (["--preset", "nerf-synthetic", *TINY], "preset")]:
+        assert main([*start, "--resume", "--max-steps", "5", *extra]) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--resume: {key}" in err[0] and "config.yaml" in err[0], err
+    assert json.loads((out / "run.json").read_text())["step"] == 4  # a refused resume trains nothing
 
 
 def test_loss_dict_has_every_term(toy_scene, tmp_path):

@@ -8,13 +8,64 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 from anisdf import __version__
 from anisdf.errors import AnisdfError
 
 log = logging.getLogger("anisdf")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's one-line errors (exit code 2): ``anisdf <command>: error: argument --x: ...``."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse ``type=``: an integer >= ``low``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, not {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, not {text!r}")
+        return value
+
+    parse.__name__ = f"integer >= {low}"
+    return parse
+
+
+def float_at_least(low: float, strict: bool = False) -> Callable[[str], float]:
+    """An argparse ``type=``: a finite number >= ``low`` (> ``low`` when ``strict``)."""
+    bound = f"{'>' if strict else '>='} {low:g}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number {bound}, not {text!r}") from None
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"must be a finite number {bound}, not {text!r}")
+        return value
+
+    parse.__name__ = f"number {bound}"
+    return parse
+
+
+def out_folder(text: str) -> str:
+    """An argparse ``type=`` for ``--out``: a folder that may not exist yet, but not an existing file."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is an existing file, not a folder")
+    return text
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -102,7 +153,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from anisdf.systems.bench import run_bench
+    from anisdf.benchmarks.speed import run_bench
 
     run_bench(as_json=args.json, quick=args.quick, data=Path(args.data) if args.data else None,
               minutes=args.minutes, device=args.device, preset=args.preset)
@@ -144,7 +195,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
+    p = _Parser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
     p.add_argument("--version", action="version", version=f"anisdf {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -155,9 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("train", help="reconstruct a scene")
     s.add_argument("data", help="dataset folder")
-    s.add_argument("--out", required=True, help="run folder (checkpoints, logs, renders)")
-    s.add_argument("--max-steps", type=int, default=None)
-    s.add_argument("--max-minutes", type=float, default=None,
+    s.add_argument("--out", required=True, type=out_folder, help="run folder (checkpoints, logs, renders)")
+    s.add_argument("--max-steps", type=int_at_least(1), default=None)
+    s.add_argument("--max-minutes", type=float_at_least(0.0), default=None,
                    help="stop cleanly and save after this many minutes of training in all (0: no limit)")
     s.add_argument("--device", default=None, help="auto | cpu | cuda[:N]")
     s.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/last.pt")
@@ -167,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("extract-mesh", help="marching cubes on the SDF -> RUN/mesh.<ext>")
     s.add_argument("run")
-    s.add_argument("--resolution", type=int, default=512)
+    s.add_argument("--resolution", type=int_at_least(2), default=512, help="marching-cubes grid cells per axis")
     s.add_argument("--format", choices=["ply", "obj", "glb"], default="ply")
     s.add_argument("--remove-floaters", action="store_true",
                    help="drop pieces under 1%% of the largest one's faces (default: the mesh is not cleaned)")
@@ -180,25 +231,26 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("run")
     s.add_argument("--split", default="test")
     s.add_argument("--video", action="store_true", help="also write an orbit video (MP4)")
-    s.add_argument("--max-views", type=int, default=0)
-    s.add_argument("--downscale", type=int, default=1)
+    s.add_argument("--max-views", type=int_at_least(0), default=0, help="at most this many views (0: all)")
+    s.add_argument("--downscale", type=int_at_least(1), default=1)
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_render)
 
     s = sub.add_parser("eval", help="PSNR, SSIM, normal MAE and Chamfer -> RUN/eval.json + report")
     s.add_argument("run")
     s.add_argument("--split", default="test")
-    s.add_argument("--max-views", type=int, default=0)
-    s.add_argument("--eval-downscale", type=float, default=1.0,
+    s.add_argument("--max-views", type=int_at_least(0), default=0, help="at most this many views (0: all)")
+    s.add_argument("--eval-downscale", type=float_at_least(0.0, strict=True), default=1.0,
                    help="render and score at the dataset's resolution divided by this (default 1, whatever "
                         "data.downscale training used)")
     s.add_argument("--normal-mask", choices=["refnerf", "alpha"], default="refnerf",
                    help="normal MAE weights: rendered opacity x ground-truth alpha (Ref-NeRF), or the alpha alone")
     s.add_argument("--gt-mesh", default=None, help="reference mesh for the Chamfer distance")
-    s.add_argument("--chamfer-points", type=int, default=1_000_000)
-    s.add_argument("--chamfer-seed", type=int, default=0, help="seed of the prediction's points (reference: +1)")
+    s.add_argument("--chamfer-points", type=int_at_least(1), default=1_000_000)
+    s.add_argument("--chamfer-seed", type=int_at_least(0), default=0,
+                   help="seed of the prediction's points (reference: +1)")
     mesh_note = "; the mesh extract-mesh wrote is scored as it is, this must match it (or pass --re-extract)"
-    s.add_argument("--mesh-resolution", type=int, default=None,
+    s.add_argument("--mesh-resolution", type=int_at_least(2), default=None,
                    help="marching cubes resolution when eval extracts the mesh (default 512)" + mesh_note)
     s.add_argument("--remove-floaters", action="store_true", default=None,
                    help="clean small pieces when eval extracts the mesh (default: not cleaned)" + mesh_note)
@@ -212,27 +264,29 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("chamfer", help="Chamfer distance between two meshes (last line)")
     s.add_argument("a")
     s.add_argument("b")
-    s.add_argument("--points", type=int, default=1_000_000)
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--points", type=int_at_least(1), default=1_000_000)
+    s.add_argument("--seed", type=int_at_least(0), default=0)
     s.set_defaults(fn=cmd_chamfer)
 
     s = sub.add_parser("dtu-chamfer", help="official DTU accuracy / completeness / Chamfer in mm (last line)")
     s.add_argument("mesh")
     s.add_argument("--dtu-root", required=True, help="folder with ObsMask/ and Points/stl/ of the DTU benchmark")
-    s.add_argument("--scan", type=int, required=True, help="DTU scan number, e.g. 65")
+    s.add_argument("--scan", type=int_at_least(0), required=True, help="DTU scan number, e.g. 65")
     s.add_argument("--scale-mat", default=None, help="cameras_sphere.npz whose scale_mat_0 maps the mesh to mm")
     s.add_argument("--mask-cull", default=None, metavar="DATASET_DIR",
                    help="NeuS dataset folder (cameras npz, mask/): cull the mesh with the dilated masks first")
-    s.add_argument("--density", type=float, default=0.2, help="sampling and thinning distance in mm")
-    s.add_argument("--max-dist", type=float, default=20.0, help="distances of this many mm or more are outliers")
-    s.add_argument("--seed", type=int, default=0, help="order of the point thinning")
+    s.add_argument("--density", type=float_at_least(0.0, strict=True), default=0.2,
+                   help="sampling and thinning distance in mm")
+    s.add_argument("--max-dist", type=float_at_least(0.0, strict=True), default=20.0,
+                   help="distances of this many mm or more are outliers")
+    s.add_argument("--seed", type=int_at_least(0), default=0, help="order of the point thinning")
     s.add_argument("--no-stl-thinning", action="store_true",
                    help="score against every STL point (DTUeval-python) instead of thinning them (MATLAB original)")
     s.set_defaults(fn=cmd_dtu_chamfer)
 
     s = sub.add_parser("demo", help="reconstruct the bundled scene on the CPU in a few minutes")
-    s.add_argument("--out", default="runs/demo")
-    s.add_argument("--minutes", type=float, default=4.0)
+    s.add_argument("--out", default="runs/demo", type=out_folder)
+    s.add_argument("--minutes", type=float_at_least(0.0, strict=True), default=4.0)
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_demo)
 
@@ -240,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.add_argument("--quick", action="store_true", help="skip the time-to-PSNR run")
     s.add_argument("--data", default=None, help="scene for time-to-PSNR (default ../shared/data/bunny_plastic)")
-    s.add_argument("--minutes", type=float, default=10.0)
+    s.add_argument("--minutes", type=float_at_least(0.0, strict=True), default=10.0)
     s.add_argument("--device", default="auto", help="auto (CUDA if available) | cpu | cuda[:N]")
     s.add_argument("--preset", default="cpu-quick", help="configuration of the training-step and time-to-PSNR runs")
     s.set_defaults(fn=cmd_bench)
@@ -250,16 +304,19 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("reproduce", help="train and evaluate a table of the paper -> OUT/reproduce.json, .md")
     s.add_argument("table", choices=list(TABLES))
     s.add_argument("--data", required=True, help="dataset root holding the table's scenes, or one scene folder")
-    s.add_argument("--out", required=True, help="folder of the runs and the results (a rerun resumes)")
+    s.add_argument("--out", required=True, type=out_folder,
+                   help="folder of the runs and the results (a rerun resumes)")
     s.add_argument("--scale", choices=["paper", "cpu"], default="paper",
                    help="paper: the table's preset; cpu: cpu-quick with the table's data settings, --minutes per run")
     s.add_argument("--scenes", default=None, help="comma-separated scene folder names (default: the paper's)")
-    s.add_argument("--minutes", type=float, default=None, help="time budget per run (cpu scale: 10)")
+    s.add_argument("--minutes", type=float_at_least(0.0), default=None, help="time budget per run (cpu scale: 10)")
     s.add_argument("--seeds", default=None, help="comma-separated seeds (train.seed), e.g. 0,1 (default 0)")
-    s.add_argument("--max-steps", type=int, default=None, help="steps per run instead of the preset's")
-    s.add_argument("--max-views", type=int, default=0, help="evaluate on at most this many test views (0: all)")
-    s.add_argument("--mesh-resolution", type=int, default=512, help="marching cubes resolution for the Chamfer")
-    s.add_argument("--chamfer-points", type=int, default=1_000_000)
+    s.add_argument("--max-steps", type=int_at_least(1), default=None, help="steps per run instead of the preset's")
+    s.add_argument("--max-views", type=int_at_least(0), default=0,
+                   help="evaluate on at most this many test views (0: all)")
+    s.add_argument("--mesh-resolution", type=int_at_least(2), default=512,
+                   help="marching cubes resolution for the Chamfer")
+    s.add_argument("--chamfer-points", type=int_at_least(1), default=1_000_000)
     s.add_argument("--dtu-eval", default=None,
                    help="folder with DTU's official ObsMask/ and Points/stl/ (default: beside the scenes)")
     s.add_argument("--device", default=None)

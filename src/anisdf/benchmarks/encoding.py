@@ -34,8 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from anisdf.fields.hash_encoding import GridSpec, hash_encode_reference
-from anisdf.fields.hash_encoding_fast import kernel_info, load_fast_encoder, triton_info
+from anisdf.fields.hash_grid import GridSpec, hash_encode_reference, kernel_info, load_fast_encoder, triton_info
 
 FLOOR_NS_PER_LOOKUP = 15.0
 

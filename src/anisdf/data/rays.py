@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from anisdf.data.images import composite
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, DataError
 
@@ -176,7 +177,7 @@ class RayDataset:
         rgb = self.images[local, rows, cols].float() / 255.0
         if self.composite is not None and self.mode != "none":
             a = self.composite[local, rows, cols].float().unsqueeze(-1) / 255.0
-            rgb = rgb * a + bg * (1.0 - a)
+            rgb = composite(rgb, a, bg)
         else:
             bg = torch.zeros_like(rgb)
         mask = None if self.coverage is None else self.coverage[local, rows, cols].float() / 255.0

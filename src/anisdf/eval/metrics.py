@@ -18,6 +18,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from skimage.metrics import structural_similarity
 
+from anisdf.data.images import composite
 from anisdf.errors import AnisdfError, DataError
 
 ArrayLike = np.ndarray | torch.Tensor
@@ -58,8 +59,12 @@ def composite_on_white(rgba: ArrayLike) -> np.ndarray:
     t = _as_float_tensor(rgba).cpu().numpy()
     if t.shape[-1] != 4:
         raise ValueError(f"expected an HxWx4 RGBA image, got shape {t.shape}")
-    a = t[..., 3:4]
-    return t[..., :3] * a + (1.0 - a)
+    return composite(t[..., :3], t[..., 3:4], 1.0)
+
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of images in [0, 1] from their mean squared error (floored at 1e-10, i.e. at most 100 dB)."""
+    return -10.0 * math.log10(max(mse, 1e-10))
 
 
 def psnr(pred: ArrayLike, gt: ArrayLike, mask: ArrayLike | None = None) -> float:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
+from anisdf.data.images import composite
 from anisdf.export.atomic import atomic_path
 
 ArrayLike = np.ndarray | torch.Tensor
@@ -142,7 +143,7 @@ def to_rgb_uint8(img: ArrayLike) -> np.ndarray:
         a = np.repeat(a, 3, axis=-1)
     if a.shape[-1] == 4:  # composite on white
         alpha = a[..., 3:4].astype(np.float32) / 255.0
-        a = np.round(a[..., :3] * alpha + 255.0 * (1.0 - alpha)).astype(np.uint8)
+        a = np.round(composite(a[..., :3], alpha, 255.0)).astype(np.uint8)
     return a
 
 

@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
-from anisdf.fields.hash_encoding import GridSpec, HashGrid
+from anisdf.fields.hash_grid import GridSpec, HashGrid
 
 BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
 

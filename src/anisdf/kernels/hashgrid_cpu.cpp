@@ -1,6 +1,6 @@
 // CPU multiresolution hash-grid encoding (Mueller et al. 2022) for anisdf.
 //
-// Computes exactly the function of anisdf/fields/hash_encoding.py::hash_encode_reference and its first and
+// Computes exactly the function of anisdf/fields/hash_grid/reference.py::hash_encode_reference and its first and
 // second derivatives (w_k: trilinear weight of corner k, t_k: its table row, R: the level's resolution):
 //   forward          out[n, l*F + f] = sum_k w_k(frac) t_k[f]
 //   backward         grad_table[row_k] += w_k g ;  grad_x += R sum_k <t_k, g> dw_k/dfrac
@@ -159,13 +159,13 @@ inline void prefetch_rows(const Chunk& c, int i, const float* base, bool for_wri
 std::vector<Level> make_levels(const torch::Tensor& levels) {
   TORCH_CHECK(levels.device().is_cpu() && levels.scalar_type() == torch::kInt64 && levels.dim() == 2 &&
                   levels.size(1) == 3,
-              "levels must be a CPU int64 tensor [L, 3] of (resolution, hashed, offset)");
+              "hashgrid_cpu: levels must be a CPU int64 tensor [L, 3] of (resolution, hashed, offset)");
   auto a = levels.contiguous();
   const int64_t* p = a.data_ptr<int64_t>();
   std::vector<Level> out(a.size(0));
   for (int64_t l = 0; l < a.size(0); ++l) {
     const int64_t r = p[3 * l];
-    TORCH_CHECK(r >= 0 && r < (1 << 20), "resolution out of range");
+    TORCH_CHECK(r >= 0 && r < (1 << 20), "hashgrid_cpu: resolution ", r, " out of range 0..2^20");
     out[l].res = static_cast<float>(r);
     out[l].maxbase = static_cast<float>(std::max<int64_t>(r - 1, 0));
     out[l].stride = static_cast<uint32_t>(r + 1);
@@ -180,15 +180,15 @@ void check_inputs(const torch::Tensor& x, const torch::Tensor& table, const std:
   TORCH_CHECK(x.device().is_cpu() && table.device().is_cpu(), "hashgrid_cpu: CPU tensors only");
   TORCH_CHECK(x.scalar_type() == torch::kFloat32 && table.scalar_type() == torch::kFloat32,
               "hashgrid_cpu: float32 points and table only");
-  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3, "x must be [N, 3]");
-  TORCH_CHECK(table.dim() == 2, "table must be [T, F]");
-  TORCH_CHECK(log2_size >= 1 && log2_size <= 31, "log2_hashmap_size must be in 1..31");
+  TORCH_CHECK(x.dim() == 2 && x.size(1) == 3, "hashgrid_cpu: x must be [N, 3]");
+  TORCH_CHECK(table.dim() == 2, "hashgrid_cpu: table must be [T, F]");
+  TORCH_CHECK(log2_size >= 1 && log2_size <= 31, "hashgrid_cpu: log2_hashmap_size must be in 1..31");
   const int64_t cap = int64_t(1) << log2_size;
   for (const auto& l : lv) {
     const int64_t s = l.stride;
     const int64_t size = l.hashed ? cap : s * s * s;
-    TORCH_CHECK(l.hashed || s * s * s <= cap, "a dense level does not fit the hash map size");
-    TORCH_CHECK(l.offset >= 0 && l.offset + size <= table.size(0), "table has too few rows for the spec");
+    TORCH_CHECK(l.hashed || s * s * s <= cap, "hashgrid_cpu: a dense level does not fit the hash map size");
+    TORCH_CHECK(l.offset >= 0 && l.offset + size <= table.size(0), "hashgrid_cpu: table has too few rows for the spec");
   }
 }
 
@@ -530,30 +530,32 @@ void double_impl(const DoubleArgs& a, int64_t N, const std::vector<Level>& lv, u
     case 2: { constexpr int kF = 2; CALL; } break;                          \
     case 4: { constexpr int kF = 4; CALL; } break;                          \
     case 8: { constexpr int kF = 8; CALL; } break;                          \
-    default: TORCH_CHECK(false, "features_per_level must be 1, 2, 4 or 8"); \
+    default: TORCH_CHECK(false, "hashgrid_cpu: features_per_level must be 1, 2, 4 or 8"); \
   }
 
 torch::Tensor grad_input(const torch::Tensor& t, int64_t rows, int64_t cols, const char* what) {
   auto out = t.to(torch::kFloat32).contiguous();
-  TORCH_CHECK(out.dim() == 2 && out.size(0) == rows && out.size(1) == cols, what, " must be [", rows, ", ",
-              cols, "]");
+  TORCH_CHECK(out.dim() == 2 && out.size(0) == rows && out.size(1) == cols, "hashgrid_cpu: ", what,
+              " must be [", rows, ", ", cols, "], got ", out.sizes());
   return out;
 }
 
-// Validated, contiguous inputs shared by the three entry points.
+// Validated, contiguous inputs shared by the three entry points: the one place that checks them.
 struct Inputs {
   std::vector<Level> lv;
-  torch::Tensor x, table;
+  torch::Tensor x, table, g;  // g: the incoming gradient [N, L*F] of the backward passes (undefined in forward)
   int64_t N, L, F;
   uint32_t mask;
 };
 
 Inputs prepare(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& levels,
-               int64_t log2_size) {
+               int64_t log2_size, const torch::Tensor* g = nullptr) {
   auto lv = make_levels(levels);
   check_inputs(x, table, lv, log2_size);
-  const int64_t L = static_cast<int64_t>(lv.size());
-  return {std::move(lv), x.contiguous(), table.contiguous(), x.size(0), L, table.size(1),
+  const int64_t N = x.size(0), L = static_cast<int64_t>(lv.size()), F = table.size(1);
+  torch::Tensor gc;
+  if (g != nullptr) gc = grad_input(*g, N, L * F, "incoming gradient g");
+  return {std::move(lv), x.contiguous(), table.contiguous(), std::move(gc), N, L, F,
           static_cast<uint32_t>((int64_t(1) << log2_size) - 1)};
 }
 
@@ -571,12 +573,11 @@ torch::Tensor encode_forward(torch::Tensor x, torch::Tensor table, torch::Tensor
 std::vector<torch::Tensor> encode_backward(torch::Tensor g, torch::Tensor x, torch::Tensor table,
                                            torch::Tensor levels, int64_t log2_size, bool need_table,
                                            bool need_x, int64_t mode) {
-  const auto in = prepare(x, table, levels, log2_size);
-  g = grad_input(g, in.N, in.L * in.F, "grad_output");
+  const auto in = prepare(x, table, levels, log2_size, &g);
   torch::Tensor gt, gx;
   if (need_table) gt = torch::zeros_like(in.table);
   if (need_x) gx = torch::zeros({in.N, 3}, in.x.options());
-  ANISDF_DISPATCH_F(in.F, backward_impl<kF>(in.x.data_ptr<float>(), g.data_ptr<float>(),
+  ANISDF_DISPATCH_F(in.F, backward_impl<kF>(in.x.data_ptr<float>(), in.g.data_ptr<float>(),
                                             in.table.data_ptr<float>(), need_table ? gt.data_ptr<float>() : nullptr,
                                             need_x ? gx.data_ptr<float>() : nullptr, in.N, in.lv, in.mask,
                                             static_cast<int>(mode)));
@@ -588,9 +589,8 @@ std::vector<torch::Tensor> encode_double_backward(torch::Tensor g, torch::Tensor
                                                   std::optional<torch::Tensor> ggt, torch::Tensor levels,
                                                   int64_t log2_size, bool need_g, bool need_table,
                                                   bool need_x) {
-  const auto in = prepare(x, table, levels, log2_size);
+  const auto in = prepare(x, table, levels, log2_size, &g);
   const int64_t N = in.N, F = in.F;
-  g = grad_input(g, N, in.L * F, "g");
   torch::Tensor ggx_t, ggt_t;
   if (ggx.has_value() && ggx->defined()) ggx_t = grad_input(*ggx, N, 3, "grad of grad_x");
   if (ggt.has_value() && ggt->defined()) ggt_t = grad_input(*ggt, in.table.size(0), F, "grad of grad_table");
@@ -599,7 +599,7 @@ std::vector<torch::Tensor> encode_double_backward(torch::Tensor g, torch::Tensor
   if (need_table) ot = torch::zeros_like(in.table);
   if (need_x) ox = torch::zeros({N, 3}, in.x.options());
   DoubleArgs a{in.x.data_ptr<float>(),
-               g.data_ptr<float>(),
+               in.g.data_ptr<float>(),
                in.table.data_ptr<float>(),
                ggx_t.defined() ? ggx_t.data_ptr<float>() : nullptr,
                ggt_t.defined() ? ggt_t.data_ptr<float>() : nullptr,

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from anisdf.config import load_config, set_key
+from anisdf.config import Config, config_from_dict, load_config, set_key
 from anisdf.errors import AnisdfError
 
 log = logging.getLogger("anisdf")
@@ -34,10 +34,47 @@ def _scene_for_run(run: Path, cfg, ck: dict[str, Any], downscale: float | None =
                       images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]))
 
 
+def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list[str]) -> Config:
+    """The config a resumed run goes on with: its own (``config.yaml``), with any ``train.*`` overrides applied.
+
+    ``--preset`` and other overrides may be repeated on ``--resume`` as long as they give the settings the run
+    already has; a setting outside ``train.*`` that would change is an error naming the key. (``train.*`` values of
+    the named preset are not compared: the run's budget and schedule stand unless a ``train.*`` override changes
+    them.)
+    """
+    train_items = [o for o in overrides if o.partition("=")[0].strip().startswith("train.")]
+    other = [o for o in overrides if o not in train_items]
+    if preset:
+        wanted = load_config(preset, other)
+    else:
+        wanted = config_from_dict(saved.to_dict())
+        for item in other:
+            key, eq, value = item.partition("=")
+            if not eq:
+                raise AnisdfError(f"override '{item}' is not of the form key=value")
+            set_key(wanted, key.strip(), value)
+    have, want = _flat(saved.to_dict()), _flat(wanted.to_dict())
+    for key, value in want.items():
+        if not key.startswith("train.") and have.get(key) != value:
+            raise AnisdfError(f"--resume: {key} is {have.get(key)!r} in {out / 'config.yaml'}, the given preset and "
+                              f"overrides make it {value!r}; only train.* settings may change on --resume")
+    cfg = config_from_dict(saved.to_dict())
+    for item in train_items:
+        key, _, value = item.partition("=")
+        set_key(cfg, key.strip(), value)
+    return cfg
+
+
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
           max_steps: int | None = None, max_minutes: float | None = None, device: str | None = None,
           resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    from anisdf.config import config_from_dict
     from anisdf.data.dataparsers import load_scene
     from anisdf.systems.checkpoint import load_checkpoint
     from anisdf.systems.trainer import Trainer, pick_device
@@ -46,14 +83,7 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
     ck = None
     if resume:
         ck = load_checkpoint(ckpt_path)
-        cfg = config_from_dict(ck["config"])
-        if preset:
-            raise AnisdfError("--preset cannot change when resuming; the run's saved config is used")
-        for item in overrides or []:
-            key, _, value = item.partition("=")
-            if not key.startswith("train."):
-                raise AnisdfError(f"only train.* settings may change on --resume, not '{key}'")
-            set_key(cfg, key, value)
+        cfg = _resume_config(out, config_from_dict(ck["config"]), preset, overrides or [])
     else:
         if ckpt_path.exists():
             raise AnisdfError(f"{out}: already holds a run; pass --resume to continue it or choose another --out")

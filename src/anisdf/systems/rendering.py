@@ -10,6 +10,7 @@ import torch.nn.functional as F
 
 from anisdf.data.rays import RayDataset
 from anisdf.data.scene import Scene
+from anisdf.eval.metrics import psnr_from_mse
 from anisdf.models.anisdf import AniSDFModel
 
 
@@ -36,8 +37,6 @@ def render_rays_to_maps(model: AniSDFModel, origins: torch.Tensor, dirs: torch.T
 
 def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chunk: int) -> dict:
     """Render view ``i`` of a split on a white background; returns maps, the target and its PSNR."""
-    from anisdf.systems.trainer import psnr_from_mse
-
     batch, hw = data.image(i)
     maps = render_rays_to_maps(model, batch.origins, batch.directions, batch.background, hw, chunk)
     gt = batch.rgb.reshape(*hw, 3).float().cpu().numpy()

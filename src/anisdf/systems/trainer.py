@@ -29,6 +29,7 @@ from anisdf.config import Config, config_from_dict
 from anisdf.data.rays import RayDataset, eval_background
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.eval.metrics import psnr_from_mse
 from anisdf.export.atomic import write_text_atomic
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.systems.checkpoint import atomic_save, load_checkpoint
@@ -37,15 +38,18 @@ log = logging.getLogger("anisdf")
 
 
 def pick_device(name: str) -> torch.device:
+    """``auto`` (CUDA if there is one), ``cpu`` or ``cuda[:N]``; an AnisdfError naming ``--device`` otherwise."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise AnisdfError(f"--device {name!r}: expected auto, cpu or cuda[:N]") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
         raise AnisdfError(f"--device {name}: CUDA is not available in this torch build")
-    return torch.device(name)
-
-
-def psnr_from_mse(mse: float) -> float:
-    return -10.0 * math.log10(max(mse, 1e-10))
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise AnisdfError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 def lr_factor(step: int, cfg: Config) -> float:
@@ -87,7 +91,7 @@ class Trainer:
         # host and copying (randperm of ~250k samples, the occupancy jitter) cost milliseconds a step
         self.gen = torch.Generator(device).manual_seed(cfg.train.seed)
         if cfg.geometry.encoding_backend != "torch":
-            from anisdf.fields.hash_encoding_fast import load_fast_encoder
+            from anisdf.fields.hash_grid import load_fast_encoder
 
             # build (CPU) or compile and check (CUDA) the hash-grid kernels now, not inside the first step;
             # encoding_backend=fast stops here when the device has none

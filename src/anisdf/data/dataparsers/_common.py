@@ -77,6 +77,23 @@ def as_float(value: Any, path: Path, what: str) -> float:
     return out
 
 
+def check_camera(intrinsics: Any, size: Any | None, path: Path, where: str, distortion: Any = None) -> None:
+    """Raise a DataError naming ``path`` and ``where`` unless the pinhole camera is usable: ``fx, fy`` finite and
+    > 0, ``cx, cy`` finite, image size ``(W, H)`` > 0 and distortion ``(k1, k2, p1, p2)`` finite."""
+    if size is not None:  # None: the size of the image on disk (checked when it is read)
+        w, h = (float(v) for v in size)
+        if not (np.isfinite(w) and np.isfinite(h) and w >= 1 and h >= 1):
+            raise DataError(path, f"{where}: image size w, h = {w:g}, {h:g} must be positive")
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    for name, value in (("focal length fx", fx), ("focal length fy", fy)):
+        if not (np.isfinite(value) and value > 0):
+            raise DataError(path, f"{where}: {name} = {value:g} must be positive and finite")
+    if not (np.isfinite(cx) and np.isfinite(cy)):
+        raise DataError(path, f"{where}: principal point cx, cy = {cx:g}, {cy:g} is not finite")
+    if distortion is not None and not np.isfinite(np.asarray(distortion, dtype=np.float64)).all():
+        raise DataError(path, f"{where}: distortion {list(distortion)} is not finite")
+
+
 def check_pose(matrix: Any, path: Path, frame: str) -> np.ndarray:
     """Validate a camera-to-world matrix (3x4 or 4x4, finite, proper rotation) and return it as a 4x4
     float64 matrix with the rotation re-orthonormalised (SVD)."""

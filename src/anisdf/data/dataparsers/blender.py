@@ -20,6 +20,7 @@ from anisdf.data.dataparsers._common import (
     GL_TO_CV,
     ParsedScene,
     as_float,
+    check_camera,
     check_pose,
     holdout_splits,
     image_size,
@@ -81,6 +82,7 @@ def parse(root: Path) -> ParsedScene:
             w, h = size
             c2w = check_pose(require(frame, "transform_matrix", path, where), path, f"{where} ({img.name})")
             fx, fy, cx, cy = _intrinsics(meta, frame, w, h, path, where)
+            check_camera((fx, fy, cx, cy), (w, h), path, f"{where} ({img.name})")
             splits[split].append(len(image_paths))
             image_paths.append(img)
             poses.append(c2w @ GL_TO_CV)

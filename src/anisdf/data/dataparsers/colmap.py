@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from anisdf.data.dataparsers._common import ParsedScene, check_pose, holdout_splits, match_masks
+from anisdf.data.dataparsers._common import ParsedScene, check_camera, check_pose, holdout_splits, match_masks
 from anisdf.errors import DataError
 
 # model id -> (name, number of parameters), as in COLMAP's src/colmap/sensor/models.h
@@ -228,6 +228,7 @@ def parse(root: Path) -> ParsedScene:
         c2w[:3, 3] = -rot.T @ rec.tvec
         poses.append(check_pose(c2w, img_file, where))
         k, d = camera_intrinsics(cam)
+        check_camera(k, (cam.width, cam.height), cam_file, f"camera {rec.camera_id} ({rec.name})", d)
         intr.append(k)
         dist.append(d)
         image_paths.append(image_dir / rec.name)

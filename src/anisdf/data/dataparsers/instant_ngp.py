@@ -20,6 +20,7 @@ from anisdf.data.dataparsers._common import (
     GL_TO_CV,
     ParsedScene,
     as_float,
+    check_camera,
     check_pose,
     holdout_splits,
     image_size,
@@ -74,13 +75,18 @@ def parse(root: Path) -> ParsedScene:
             angle = get("camera_angle_x")
             if angle is None:
                 raise DataError(path, f"{where}: missing key 'fl_x' (or 'camera_angle_x')")
+            if not 0.0 < angle < math.pi:
+                raise DataError(path, f"{where}: 'camera_angle_x' = {angle:g} is not an angle in (0, pi)")
             fx = 0.5 * w / math.tan(0.5 * angle)
         if fy is None:
             angle_y = get("camera_angle_y")
+            if angle_y is not None and not 0.0 < angle_y < math.pi:
+                raise DataError(path, f"{where}: 'camera_angle_y' = {angle_y:g} is not an angle in (0, pi)")
             fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fx
         cx, cy = get("cx"), get("cy")
         intr.append([fx, fy, w / 2.0 if cx is None else cx, h / 2.0 if cy is None else cy])
         dist.append([get(k) or 0.0 for k in ("k1", "k2", "p1", "p2")])
+        check_camera(intr[-1], (w, h), path, f"{where} ({img.name})", dist[-1])
         ignored.update(k for k in ("k3", "k4") if get(k))
         c2w = check_pose(require(frame, "transform_matrix", path, where), path, f"{where} ({img.name})")
         poses.append(c2w @ GL_TO_CV)

@@ -59,6 +59,9 @@ def parse(root: Path) -> ParsedScene:
             raise DataError(path, f"{where}: h, w = {hi:g}, {wi:g} differ from row 0's {h:g}, {w:g}")
         c2w.append(check_pose(llff_to_opencv(poses[i]), path, where))
         intr.append([f, f, wi / 2.0, hi / 2.0])
+        near, far = bounds[i]
+        if not near < far:
+            raise DataError(path, f"{where}: bounds near, far = {near:g}, {far:g} need near < far")
     assert h is not None and w is not None
     warnings: list[str] = []
     valid = bounds[(bounds > 0).all(axis=1)]

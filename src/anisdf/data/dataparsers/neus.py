@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
-from anisdf.data.dataparsers._common import ParsedScene, check_pose, holdout_splits, list_images
+from anisdf.data.dataparsers._common import ParsedScene, check_camera, check_pose, holdout_splits, list_images
 from anisdf.errors import DataError
 
 NPZ_NAMES = ("cameras_sphere.npz", "cameras.npz")
@@ -80,6 +80,7 @@ def parse(root: Path) -> ParsedScene:
         if abs(K[0, 1]) > 1e-3 * K[0, 0] and not warnings:
             warnings.append(f"{npz_path.name}: camera skew {K[0, 1]:.3g} ignored")
         intr.append([K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5])
+        check_camera(intr[-1], None, npz_path, f"world_mat_{i} ({img.name})")
         if scale_mat is None:
             scale_mat = scale
     assert scale_mat is not None

@@ -4,20 +4,19 @@ Level ``l`` has resolution ``R_l = floor(base * s**l)`` and ``(R_l + 1)**3`` gri
 whose vertices fit in ``2**log2_hashmap_size`` entries are indexed densely; finer levels use the spatial
 hash ``(x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod T``. Features of the 8 corners are blended
 trilinearly. Everything is differentiable with autograd, including the double backward that an
-eikonal loss on analytic normals needs. The fast kernels (``anisdf.fields.hash_encoding_fast``: C++ on CPU,
-Triton on CUDA) implement the same contract and are tested against this file.
+eikonal loss on analytic normals needs. The fast backends beside this file (``cpu_kernel``: C++ on CPU,
+``triton``: CUDA) implement the same contract and are tested against it. This module imports none of them.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -126,31 +125,3 @@ def hash_encode_reference(x: Tensor, table: Tensor, spec: GridSpec) -> Tensor:
 
 
 EncodeFn = Callable[[Tensor, Tensor, GridSpec], Tensor]
-
-
-class HashGrid(nn.Module):
-    """A learnable hash grid.
-
-    ``backend``: ``torch`` (this reference), ``fast`` (the device's fast kernel, an error where there is none) or
-    ``auto`` (the fast kernel where there is one: compiled C++ on CPU, Triton on CUDA; else the reference).
-    """
-
-    def __init__(self, spec: GridSpec, backend: str = "auto", init_scale: float = 1e-4) -> None:
-        super().__init__()
-        if backend not in ("auto", "fast", "torch"):
-            raise ValueError(f"hash grid backend must be auto, fast or torch, not {backend!r}")
-        self.spec = spec
-        self.table = nn.Parameter(torch.empty(spec.n_params, spec.features_per_level).uniform_(-init_scale, init_scale))
-        self.backend = backend
-        self._encode: EncodeFn = hash_encode_reference
-        if backend != "torch":
-            from anisdf.fields.hash_encoding_fast import fast_hash_encode
-
-            self._encode = functools.partial(fast_hash_encode, required=backend == "fast")
-
-    @property
-    def output_dim(self) -> int:
-        return self.spec.output_dim
-
-    def forward(self, x: Tensor) -> Tensor:
-        return self._encode(x.clamp(0.0, 1.0), self.table, self.spec)

@@ -6,7 +6,7 @@ tiny-cuda-nn build on the user's machine; kernels are compiled on first use and 
 reference, values, gradients and the eikonal double backward included.
 
 The three entry points have the signatures of the compiled CPU kernel (``kernels/hashgrid_cpu.cpp``), so the
-autograd Functions of :mod:`anisdf.fields.hash_encoding_fast` drive either. Math (w_k: trilinear weight of
+autograd Functions of :mod:`anisdf.fields.hash_grid.ops` drive either. Math (w_k: trilinear weight of
 corner k, t_k: its table row, R: the level's resolution, g: incoming gradient of one level):
 
 * forward: ``out = sum_k w_k t_k``
@@ -214,15 +214,15 @@ def _double_kernel(x_ptr, table_ptr, levels_ptr, g_ptr, ggx_ptr, ggt_ptr, og_ptr
 # ------------------------------------------------------------------------------------------ entry points
 def _check(x: Tensor, table: Tensor, levels: Tensor, log2_size: int) -> tuple[int, int, int, int]:
     if x.dtype != torch.float32 or table.dtype != torch.float32:
-        raise TypeError("hash_encoding_triton: float32 points and table only")
+        raise TypeError("hash_grid.triton: float32 points and table only")
     if x.dim() != 2 or x.shape[1] != 3 or table.dim() != 2:
-        raise ValueError(f"hash_encoding_triton: x must be [N, 3] and table [T, F], got {tuple(x.shape)}, "
+        raise ValueError(f"hash_grid.triton: x must be [N, 3] and table [T, F], got {tuple(x.shape)}, "
                          f"{tuple(table.shape)}")
     if not (x.device == table.device == levels.device):
-        raise ValueError("hash_encoding_triton: x, table and levels must be on one device")
+        raise ValueError("hash_grid.triton: x, table and levels must be on one device")
     f = table.shape[1]
     if f not in (1, 2, 4, 8) or not 1 <= log2_size <= 31:
-        raise ValueError("hash_encoding_triton: features per level must be 1, 2, 4 or 8 and log2 T in 1..31")
+        raise ValueError("hash_grid.triton: features per level must be 1, 2, 4 or 8 and log2 T in 1..31")
     return x.shape[0], levels.shape[0], f, (1 << log2_size) - 1
 
 
@@ -233,7 +233,7 @@ def _grid(n: int) -> tuple[int]:
 def _grad_input(t: Tensor, shape: tuple[int, int]) -> Tensor:
     t = t.to(torch.float32).contiguous()
     if tuple(t.shape) != shape:
-        raise ValueError(f"hash_encoding_triton: gradient of shape {tuple(t.shape)}, expected {shape}")
+        raise ValueError(f"hash_grid.triton: gradient of shape {tuple(t.shape)}, expected {shape}")
     return t
 
 

@@ -1,4 +1,5 @@
-"""``anisdf bench``: encoding and training-step throughput (reference vs fast), peak memory, time to quality.
+"""``anisdf bench`` (the CLI calls :func:`run_bench`): encoding and training-step throughput (reference vs fast),
+peak memory, time to quality.
 
 Speed targets live here, never in timed tests. Results are recorded in benchmarks/RESULTS.md.
 """
@@ -106,7 +107,7 @@ def run_bench(as_json: bool = False, quick: bool = False, data: Path | None = No
               device: str = "auto", preset: str = "cpu-quick") -> dict:
     """Encoding, training-step and time-to-quality figures on ``device`` (auto: CUDA if there is one)."""
     from anisdf.benchmarks.encoding import bench_encoding, format_table
-    from anisdf.fields.hash_encoding_fast import load_fast_encoder
+    from anisdf.fields.hash_grid import load_fast_encoder
     from anisdf.systems.trainer import pick_device
 
     dev = pick_device(device)
