@@ -120,6 +120,26 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
     assert run["status"] == "done" and run["schedule"] == "time" and run["step"] == steps
 
 
+def test_a_first_kernel_build_is_not_spent_from_the_budget(toy_scene, tmp_path):
+    """The lazily built hash-grid kernel loads before the budget's clock starts: a one-minute first build on a new
+    machine leaves the schedule and the step count of a 1-minute budget as they are."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    clock = _FakeClock(tr, 6.0)
+    loaded = []
+    sdf = tr.model.geometry.sdf
+
+    def first_query_builds(x):  # the first SDF query of the process pays for the build
+        if not loaded:
+            loaded.append(clock.now)
+            clock.now += 60.0
+        return sdf(x)
+
+    tr.model.geometry.sdf = first_query_builds  # type: ignore[method-assign]
+    summary = tr.fit()
+    assert loaded == [0.0]
+    assert summary["status"] == "done" and summary["step"] == 10 and summary["train_seconds"] == pytest.approx(60.0)
+
+
 def test_a_resumed_time_budget_continues_its_schedule(toy_scene, tmp_path):
     """Stopped half-way through its budget, a run resumes where its schedule stood (not from the start) and ends at
     the deadline."""

@@ -259,6 +259,10 @@ class Trainer:
             cfg.train.max_minutes = max_minutes
         timed = self.budget_seconds > 0
         self.write_run_files()
+        # load (or build, the first time on a machine) the lazily loaded hash-grid kernels before the clock starts:
+        # a one-off compile is not training time and must not eat into the budget's schedule
+        with torch.no_grad():
+            self.model.geometry.sdf(torch.zeros(1, 3, device=self.device))
         t_start = self.clock()
         t0_seconds = self.state.train_seconds
         total = cfg.train.max_steps
