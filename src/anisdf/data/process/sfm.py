@@ -135,7 +135,8 @@ def run_sfm(
 
 
 ADVICE = ("take photos with more overlap (each part seen in 3+ views, neighbours sharing ~70%), use "
-          "--matcher exhaustive (or sequential for a video), and drop blurry or featureless frames")
+          "--matcher exhaustive (or sequential for a video), keep --camera-model simple_radial unless the lens "
+          "needs more, and drop blurry or featureless frames")
 
 
 def args_debug() -> bool:
