@@ -120,6 +120,7 @@ def process_data(
         "n_registered": len(registered),
         "not_registered": failed,
         "n_models": sfm.n_models,
+        "principal_point_refined": sfm.principal_point_refined,
         "mean_reprojection_error_px": round(mean_error, 4),
         "n_points": int(rec.num_points3D()),
         "mean_track_length": round(float(rec.compute_mean_track_length()), 3),
