@@ -268,3 +268,15 @@ def test_bounding_sphere_in_transforms_json_is_validated(tmp_path: Path) -> None
     parsed = parse_dataset(tmp_path)
     assert parsed.roi_method == "sparse-points"
     np.testing.assert_allclose(parsed.to_world, [[2.5, 0, 0, 1], [0, 2.5, 0, 2], [0, 0, 2.5, 3], [0, 0, 0, 1]])
+
+
+@pytest.mark.parametrize("kwargs, message", [({"matcher": "vocab"}, "vocabulary tree"),
+                                             ({"camera_model": "pinhole_ish"}, "--camera-model 'pinhole_ish'")])
+def test_bad_options_fail_before_writing(views: tuple[Path, np.ndarray], tmp_path: Path, kwargs: dict,
+                                         message: str) -> None:
+    pytest.importorskip("pycolmap", reason="process-data needs pycolmap (pip install 'anisdf[colmap]')")
+    from anisdf.data.process import process_data
+
+    with pytest.raises(AnisdfError, match=message):
+        process_data(views[0], tmp_path / "scene", progress=False, **kwargs)
+    assert not (tmp_path / "scene").exists()

@@ -23,7 +23,7 @@ from anisdf.data.process.export import (
     write_points_ply,
 )
 from anisdf.data.process.inputs import DEFAULT_VIDEO_FRAMES, MIN_IMAGES, import_folder, import_video, is_video
-from anisdf.data.process.sfm import ADVICE, ANISDF_MODELS, MATCHERS, require_pycolmap, run_sfm, undistort
+from anisdf.data.process.sfm import ADVICE, ANISDF_MODELS, check_options, require_pycolmap, run_sfm, undistort
 from anisdf.errors import AnisdfError, DataError
 
 log = logging.getLogger("anisdf")
@@ -60,8 +60,7 @@ def process_data(
     if not video and not src.is_dir():
         raise DataError(src, "input is neither a folder of images nor a video file")
     matcher = matcher or ("sequential" if video else "exhaustive")
-    if matcher not in MATCHERS:
-        raise AnisdfError(f"--matcher {matcher!r} is unknown; choose one of {', '.join(MATCHERS)}")
+    check_options(matcher, camera_model, Path(vocab_tree) if vocab_tree else None)
     if (scene / "transforms.json").exists():
         raise DataError(scene / "transforms.json", "already exists; choose another --out or remove the old scene")
     if scene.resolve() == src.resolve():

@@ -53,6 +53,20 @@ def camera_models() -> list[str]:
     return [m.lower() for m in pycolmap.CameraModelId.__members__ if m != "INVALID"]
 
 
+def check_options(matcher: str, camera_model: str, vocab_tree: Path | None) -> str:
+    """Validate the SfM options (before anything is written); returns COLMAP's camera model name."""
+    pycolmap = require_pycolmap()
+    model = camera_model.upper()
+    if model not in pycolmap.CameraModelId.__members__ or model == "INVALID":
+        raise AnisdfError(f"--camera-model {camera_model!r} is unknown; choose one of {', '.join(camera_models())}")
+    if matcher not in MATCHERS:
+        raise AnisdfError(f"--matcher {matcher!r} is unknown; choose one of {', '.join(MATCHERS)}")
+    if matcher == "vocab" and (vocab_tree is None or not vocab_tree.is_file()):
+        raise AnisdfError("--matcher vocab needs a COLMAP vocabulary tree file (--vocab-tree PATH, e.g. "
+                          "vocab_tree_flickr100K_words32K.bin from colmap.github.io); or use exhaustive/sequential")
+    return model
+
+
 @dataclass
 class SfmResult:
     reconstruction: Any
@@ -85,14 +99,7 @@ def run_sfm(
     import time
 
     pycolmap = require_pycolmap()
-    model = camera_model.upper()
-    if model not in pycolmap.CameraModelId.__members__ or model == "INVALID":
-        raise AnisdfError(f"--camera-model {camera_model!r} is unknown; choose one of {', '.join(camera_models())}")
-    if matcher not in MATCHERS:
-        raise AnisdfError(f"--matcher {matcher!r} is unknown; choose one of {', '.join(MATCHERS)}")
-    if matcher == "vocab" and (vocab_tree is None or not vocab_tree.is_file()):
-        raise AnisdfError("--matcher vocab needs a COLMAP vocabulary tree file (--vocab-tree PATH, e.g. "
-                          "vocab_tree_flickr100K_words32K.bin from colmap.github.io); or use exhaustive/sequential")
+    model = check_options(matcher, camera_model, vocab_tree)
     if not args_debug():
         pycolmap.logging.minloglevel = 2  # COLMAP's own INFO/WARNING lines; --debug keeps them
     pycolmap.set_random_seed(seed)
