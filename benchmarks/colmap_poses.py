@@ -7,7 +7,8 @@ anisdf's own parser (NeuS ``cameras_sphere.npz``, LLFF ``poses_bounds.npy``, ...
 centres to the given ones with a similarity (Umeyama, ``pycolmap.estimate_sim3d``) and prints a table: images
 registered, rotation error (deg), camera-centre error in % of the cameras' spread (mean distance of the given
 centres from their centroid), focal length error, and, for NeuS data, how the sparse-point bounding sphere
-compares with the dataset's ``scale_mat`` sphere. ``--reuse`` compares an existing output without running SfM.
+compares with the dataset's ``scale_mat`` sphere. ``--reuse`` compares an existing output without running SfM;
+``--video`` first encodes the images as a video (one frame each) and processes that with the sequential matcher.
 """
 
 from __future__ import annotations
@@ -29,13 +30,32 @@ def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a.T @ b) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def compare(data: Path, scene: Path) -> dict[str, float | int | str]:
-    """Errors of the process-data cameras in ``scene`` against the given cameras of ``data``."""
+def make_video(images: Path, video: Path, fps: int = 10) -> int:
+    """Encode the sorted images of ``images`` as an H.264 video, one frame each; returns the frame count."""
+    import imageio_ffmpeg
+    from PIL import Image
+
+    paths = sorted(p for p in images.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    size = Image.open(paths[0]).size
+    writer = imageio_ffmpeg.write_frames(str(video), size, fps=fps, quality=8, macro_block_size=1)
+    writer.send(None)
+    for p in paths:
+        writer.send(np.ascontiguousarray(np.asarray(Image.open(p).convert("RGB"))))
+    writer.close()
+    return len(paths)
+
+
+def compare(data: Path, scene: Path, from_video: bool = False) -> dict[str, float | int | str]:
+    """Errors of the process-data cameras in ``scene`` against the given cameras of ``data``; with
+    ``from_video`` the k-th frame (``frame_0000k``) is the k-th image by name."""
     import pycolmap
 
     truth = parse_dataset(data)
     est = parse_dataset(scene)
     by_name = {p.name: i for i, p in enumerate(truth.image_paths)}
+    if from_video:
+        order = sorted(range(len(truth.image_paths)), key=lambda i: truth.image_paths[i].name)
+        by_name = {f"frame_{k + 1:05d}.png": i for k, i in enumerate(order)}
     pairs = [(i, by_name[p.name]) for i, p in enumerate(est.image_paths) if p.name in by_name]
     ie, it = (np.array(v) for v in zip(*pairs, strict=True))
     sim = pycolmap.estimate_sim3d(est.c2w[ie, :3, 3], truth.c2w[it, :3, 3])
@@ -78,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--camera-model", default="simple_radial")
     p.add_argument("--reuse", action="store_true", help="compare an existing --out without running process-data")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--video", action="store_true",
+                   help="encode the images as a video first (one frame each) and process that (sequential matcher)")
     args = p.parse_args(argv)
     images = next((args.data / d for d in ("image", "images") if (args.data / d).is_dir()), None)
     if images is None:
@@ -86,11 +108,16 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path("/tmp") / f"process_data_{args.data.name}"
     summary = None
     t0 = time.perf_counter()
-    if not args.reuse:
+    if not args.reuse and args.video:
+        out.mkdir(parents=True, exist_ok=True)
+        n = make_video(images, out / "input.mp4")
+        summary = process_data(out / "input.mp4", out, matcher="sequential", max_frames=n,
+                               camera_model=args.camera_model)
+    elif not args.reuse:
         summary = process_data(images, out, matcher=args.matcher, camera_model=args.camera_model)
     elif (out / "process_data.json").is_file():
         summary = json.loads((out / "process_data.json").read_text())
-    result = compare(args.data, out)
+    result = compare(args.data, out, from_video=args.video)
     if summary is not None:
         result["mean_reprojection_error_px"] = summary["mean_reprojection_error_px"]
         result["points"] = summary["n_points"]
@@ -98,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"\n{args.data.name}: process-data ({args.matcher}, {args.camera_model}) vs given cameras "
+    how = "video, sequential" if args.video else args.matcher
+    print(f"\n{args.data.name}: process-data ({how}, {args.camera_model}) vs given cameras "
           f"({time.perf_counter() - t0:.0f} s)\n")
     print("| metric | value |\n|---|---|")
     for k, v in result.items():
