@@ -18,8 +18,11 @@ from anisdf.data.dataparsers.colmap import ColmapCamera, camera_intrinsics
 from anisdf.data.normalize import look_at_point
 
 SPHERE_MARGIN = 1.1
-MIN_VISIBLE = 0.5
-"""A sparse point must lie inside the view frustum of this fraction of the cameras to count for an object."""
+MIN_VISIBLE = 0.75
+"""A sparse point must lie inside the view frustum of this fraction of the cameras to count for an object (as a
+voxel for the visual hull, :data:`anisdf.data.normalize.HULL_MIN_VISIBLE`). On DTU scan 65 the sphere's radius is
+1.55 / 1.21 / 1.04 times the dataset's scale_mat sphere for 0.5 / 0.75 / 0.9: the table around the skull is in
+fewer views; 0.9 would cut objects that leave the frame in some views."""
 MAX_ERROR_PX = 2.0
 MIN_TRACK = 3
 
@@ -104,7 +107,7 @@ def bounding_sphere(poses: Poses) -> Sphere:
     """Sphere around what the cameras look at, from the sparse points.
 
     Points with a reprojection error under 2 px seen in 3+ images are kept; for an object capture (optical
-    axes that meet) only those inside half the view frustums, anchored at the cameras' look-at point;
+    axes that meet) only those inside 75% of the view frustums, anchored at the cameras' look-at point;
     points farther from the anchor than median + 3 MAD (scaled to a standard deviation) are outliers. The
     sphere is centred on the box of the 1st-99th percentiles of the rest and its radius is 1.1 times the 99th
     percentile distance, capped at 0.9 of the nearest camera distance.
