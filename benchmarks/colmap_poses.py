@@ -96,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None, help="scene folder for process-data (default /tmp/...)")
     p.add_argument("--matcher", default="exhaustive")
     p.add_argument("--camera-model", default="simple_radial")
+    p.add_argument("--refine-principal-point", action="store_true")
     p.add_argument("--reuse", action="store_true", help="compare an existing --out without running process-data")
     p.add_argument("--json", action="store_true")
     p.add_argument("--video", action="store_true",
@@ -112,9 +113,10 @@ def main(argv: list[str] | None = None) -> int:
         out.mkdir(parents=True, exist_ok=True)
         n = make_video(images, out / "input.mp4")
         summary = process_data(out / "input.mp4", out, matcher="sequential", max_frames=n,
-                               camera_model=args.camera_model)
+                               camera_model=args.camera_model, refine_principal_point=args.refine_principal_point)
     elif not args.reuse:
-        summary = process_data(images, out, matcher=args.matcher, camera_model=args.camera_model)
+        summary = process_data(images, out, matcher=args.matcher, camera_model=args.camera_model,
+                               refine_principal_point=args.refine_principal_point)
     elif (out / "process_data.json").is_file():
         summary = json.loads((out / "process_data.json").read_text())
     result = compare(args.data, out, from_video=args.video)

@@ -103,7 +103,8 @@ def test_process_data_registers_and_matches_true_cameras(views: tuple[Path, np.n
 
     photos, truth = views
     scene = tmp_path / "scene"
-    summary = process_data(photos, scene, progress=False)
+    summary = process_data(photos, scene, refine_principal_point=True, progress=False)
+    assert summary["matcher"] == "exhaustive" and summary["principal_point_refined"]
     assert summary["n_registered"] == summary["n_images"] == len(truth)
     assert summary["not_registered"] == []
     assert 0.0 < summary["mean_reprojection_error_px"] < 1.0
@@ -138,6 +139,29 @@ def test_process_data_registers_and_matches_true_cameras(views: tuple[Path, np.n
     assert float(loaded.cameras.centers.norm(dim=-1).min()) > 1.0
     inspected = json.loads((scene / "process_data.json").read_text())
     assert inspected["sphere_method"] == "sparse-points"
+
+
+def test_video_input_end_to_end(views: tuple[Path, np.ndarray], tmp_path: Path) -> None:
+    pycolmap = pytest.importorskip("pycolmap", reason="process-data needs pycolmap (pip install 'anisdf[colmap]')")
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="reading videos needs imageio-ffmpeg")
+    from anisdf.data.process import process_data
+
+    photos, truth = views
+    video = tmp_path / "walk.mp4"
+    writer = imageio_ffmpeg.write_frames(str(video), (W, H), fps=10, quality=10, macro_block_size=8)
+    writer.send(None)
+    for p in sorted(photos.iterdir()):
+        writer.send(np.ascontiguousarray(np.asarray(Image.open(p))))
+    writer.close()
+    summary = process_data(video, tmp_path / "scene", progress=False)
+    assert summary["kind"] == "video" and summary["matcher"] == "sequential"
+    assert summary["n_registered"] == summary["n_images"] == len(truth)
+    parsed = parse_dataset(tmp_path / "scene")
+    order = [int(p.stem.split("_")[1]) - 1 for p in parsed.image_paths]  # frame_00001 is view 0
+    sim = pycolmap.estimate_sim3d(parsed.c2w[:, :3, 3], truth[order, :3, 3])
+    errors = [rotation_deg(sim.rotation.matrix() @ e[:3, :3], t[:3, :3]) for e, t in zip(parsed.c2w, truth[order],
+                                                                                          strict=True)]
+    assert max(errors) < 2.0, errors
 
 
 def test_unrelated_images_fail_with_advice_and_keep_files(tmp_path: Path) -> None:

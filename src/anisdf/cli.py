@@ -96,7 +96,8 @@ def cmd_process_data(args: argparse.Namespace) -> int:
 
     summary = process_data(Path(args.input), Path(args.out), matcher=args.matcher, max_frames=args.max_frames,
                            downscale=args.downscale, camera_model=args.camera_model, vocab_tree=args.vocab_tree,
-                           force_undistort=args.undistort, progress=not args.no_progress)
+                           force_undistort=args.undistort, refine_principal_point=args.refine_principal_point,
+                           progress=not args.no_progress)
     print(json.dumps(summary, indent=2))
     print(summary_line(summary))
     return 0
@@ -202,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
     s.add_argument("--undistort", action="store_true", help="write undistorted pinhole images even when anisdf "
                    "could model the distortion")
+    s.add_argument("--refine-principal-point", action="store_true",
+                   help="free the principal point in a last bundle adjustment (lenses with an off-centre one)")
     s.add_argument("--no-progress", action="store_true", help="no progress bars")
     s.set_defaults(fn=cmd_process_data)
 

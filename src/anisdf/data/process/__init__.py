@@ -41,13 +41,16 @@ def process_data(
     camera_model: str = "simple_radial",
     vocab_tree: str | Path | None = None,
     force_undistort: bool = False,
+    refine_principal_point: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Pose the photos (folder) or frames (video) at ``input_path`` and write the scene folder ``out``.
 
     ``matcher`` defaults to sequential for a video and exhaustive for photos; ``max_frames`` (default 150 for
     a video, all photos) keeps that many evenly spread images; ``downscale`` divides the image size before
-    anything else. Returns the summary that is also written to ``out/process_data.json``.
+    anything else; ``refine_principal_point`` frees the principal point in a last bundle adjustment (see
+    :func:`anisdf.data.process.sfm.refine_principal_point`). Returns the summary that is also written to
+    ``out/process_data.json``.
     """
     t_start = time.perf_counter()
     src, scene = Path(input_path), Path(out)
@@ -74,7 +77,7 @@ def process_data(
     log.info("%d images in %s", len(names), images_dir)
 
     sfm = run_sfm(images_dir, names, scene / "colmap", matcher, camera_model,
-                  Path(vocab_tree) if vocab_tree else None, progress)
+                  Path(vocab_tree) if vocab_tree else None, progress, principal_point=refine_principal_point)
     rec = sfm.reconstruction
     registered = {rec.image(i).name for i in rec.reg_image_ids()}
     failed = [n for n in names if n not in registered]
