@@ -116,7 +116,7 @@ def _bounding_sphere(meta: dict, path: Path) -> tuple[np.ndarray | None, str]:
     """The similarity mapping the unit sphere onto ``bounding_sphere`` (and its method), or (None, "")."""
     sphere = meta.get("bounding_sphere")
     if sphere is None:
-        return None, ""
+        return None, "bounding-sphere"
     if not isinstance(sphere, dict):
         raise DataError(path, "'bounding_sphere' must be an object with 'center' and 'radius'")
     center = require(sphere, "center", path, "bounding_sphere")
