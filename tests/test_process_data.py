@@ -12,7 +12,7 @@ import scipy.ndimage
 from PIL import Image, ImageFilter
 
 from anisdf.cli import main
-from anisdf.data.dataparsers import load_scene, parse_dataset
+from anisdf.data.dataparsers import colmap, load_scene, parse_dataset
 from anisdf.data.process.export import Poses, bounding_sphere
 from anisdf.data.process.inputs import import_video
 from anisdf.errors import AnisdfError, DataError
@@ -139,6 +139,20 @@ def test_process_data_registers_and_matches_true_cameras(views: tuple[Path, np.n
     assert float(loaded.cameras.centers.norm(dim=-1).min()) > 1.0
     inspected = json.loads((scene / "process_data.json").read_text())
     assert inspected["sphere_method"] == "sparse-points"
+
+    # anisdf's own COLMAP binary reader (dataparsers/colmap.py) agrees with pycolmap on the model written here.
+    model = scene / summary["colmap_model"]
+    rec = pycolmap.Reconstruction(model)
+    cams, images = colmap.read_cameras_bin(model / "cameras.bin"), colmap.read_images_bin(model / "images.bin")
+    assert {i: (c.model, c.width, c.height) for i, c in cams.items()} == {
+        i: (c.model.name, c.width, c.height) for i, c in rec.cameras.items()}
+    for i, c in cams.items():
+        np.testing.assert_allclose(c.params, rec.cameras[i].params)
+    assert {i: im.name for i, im in images.items()} == {i: im.name for i, im in rec.images.items()}
+    for i, im in images.items():
+        pose = rec.images[i].cam_from_world()
+        np.testing.assert_allclose(colmap.qvec_to_rotmat(im.qvec), pose.rotation.matrix(), atol=1e-9)
+        np.testing.assert_allclose(im.tvec, pose.translation, atol=1e-9)
 
 
 def test_video_input_end_to_end(views: tuple[Path, np.ndarray], tmp_path: Path) -> None:
