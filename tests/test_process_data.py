@@ -100,11 +100,12 @@ def views(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarray]:
 def test_process_data_registers_and_matches_true_cameras(views: tuple[Path, np.ndarray], tmp_path: Path) -> None:
     pycolmap = pytest.importorskip("pycolmap", reason="process-data needs pycolmap (pip install 'anisdf[colmap]')")
     from anisdf.data.process import process_data
+    from anisdf.data.process.sfm import refine_principal_point
 
     photos, truth = views
     scene = tmp_path / "scene"
-    summary = process_data(photos, scene, refine_principal_point=True, progress=False)
-    assert summary["matcher"] == "exhaustive" and summary["principal_point_refined"]
+    summary = process_data(photos, scene, progress=False)
+    assert summary["matcher"] == "exhaustive" and not summary["principal_point_refined"]
     assert summary["n_registered"] == summary["n_images"] == len(truth)
     assert summary["not_registered"] == []
     assert 0.0 < summary["mean_reprojection_error_px"] < 1.0
@@ -153,6 +154,16 @@ def test_process_data_registers_and_matches_true_cameras(views: tuple[Path, np.n
         pose = rec.images[i].cam_from_world()
         np.testing.assert_allclose(colmap.qvec_to_rotmat(im.qvec), pose.rotation.matrix(), atol=1e-9)
         np.testing.assert_allclose(im.tvec, pose.translation, atol=1e-9)
+
+    # --refine-principal-point: here (true point at the centre) the refined copy is accepted, keeps the point near
+    # the centre and the error no worse, and leaves the model it was given alone.
+    params = np.array(rec.cameras[next(iter(rec.cameras))].params)
+    refined = refine_principal_point(rec)
+    assert refined is not None and refined.num_reg_images() == rec.num_reg_images()
+    cam = next(iter(refined.cameras.values()))
+    assert abs(cam.principal_point_x - W / 2) < 0.05 * W and abs(cam.principal_point_y - H / 2) < 0.05 * H
+    assert refined.compute_mean_reprojection_error() <= 1.05 * rec.compute_mean_reprojection_error()
+    np.testing.assert_array_equal(rec.cameras[next(iter(rec.cameras))].params, params)
 
 
 def test_video_input_end_to_end(views: tuple[Path, np.ndarray], tmp_path: Path) -> None:
