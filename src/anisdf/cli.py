@@ -145,6 +145,18 @@ def cmd_dtu_chamfer(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_process_data(args: argparse.Namespace) -> int:
+    from anisdf.data.process import process_data, summary_line
+
+    summary = process_data(Path(args.input), Path(args.out), matcher=args.matcher, max_frames=args.max_frames,
+                           downscale=args.downscale, camera_model=args.camera_model, vocab_tree=args.vocab_tree,
+                           force_undistort=args.undistort, refine_principal_point=args.refine_principal_point,
+                           progress=not args.no_progress)
+    print(json.dumps(summary, indent=2))
+    print(summary_line(summary))
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from anisdf.systems.demo import run_demo
 
@@ -283,6 +295,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-stl-thinning", action="store_true",
                    help="score against every STL point (DTUeval-python) instead of thinning them (MATLAB original)")
     s.set_defaults(fn=cmd_dtu_chamfer)
+
+    s = sub.add_parser("process-data", help="camera poses for your own photos or video (pycolmap) -> SCENE")
+    s.add_argument("input", help="folder of images, or a video file")
+    s.add_argument("--out", required=True, help="scene folder to write (images/, colmap/, transforms.json)")
+    s.add_argument("--matcher", choices=["exhaustive", "sequential", "vocab"], default=None,
+                   help="image pairs to match (default: sequential for a video, exhaustive for photos)")
+    s.add_argument("--max-frames", type=int, default=None,
+                   help="keep this many evenly spread images (default: 150 for a video, every photo)")
+    s.add_argument("--downscale", type=int, default=1, help="divide the image size by this integer first")
+    s.add_argument("--camera-model", default="simple_radial",
+                   help="COLMAP camera model: simple_radial, radial, opencv, pinhole, ... (others are undistorted)")
+    s.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
+    s.add_argument("--undistort", action="store_true", help="write undistorted pinhole images even when anisdf "
+                   "could model the distortion")
+    s.add_argument("--refine-principal-point", action="store_true",
+                   help="free the principal point in a last bundle adjustment (lenses with an off-centre one)")
+    s.add_argument("--no-progress", action="store_true", help="no progress bars")
+    s.set_defaults(fn=cmd_process_data)
 
     s = sub.add_parser("demo", help="reconstruct the bundled scene on the CPU in a few minutes")
     s.add_argument("--out", default="runs/demo", type=out_folder)

@@ -141,7 +141,7 @@ def find_roi(
     training views, or from every loaded view when there are fewer than 8 training views (e.g. with
     ``max_images``), so that thinning the training set hardly moves the normalisation."""
     if parsed.to_world is not None:
-        return RegionOfInterest(parsed.to_world[:3, 3].copy(), float(parsed.to_world[0, 0]), "scale_mat")
+        return RegionOfInterest(parsed.to_world[:3, 3].copy(), float(parsed.to_world[0, 0]), parsed.roi_method)
     views = train if len(train) >= MIN_ROI_VIEWS else list(range(len(c2w)))
     if coverage is not None:
         cams = Cameras(

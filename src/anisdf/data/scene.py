@@ -44,7 +44,8 @@ class Scene:
     """Radius of the region of interest in dataset units (the unit sphere maps to it)."""
     warnings: list[str] = field(default_factory=list)
     roi_method: str = ""
-    """How the region of interest was found: scale_mat | visual-hull | camera-axes | forward-facing."""
+    """How the region of interest was found: scale_mat | sparse-points (process-data) | visual-hull | camera-axes |
+    forward-facing."""
 
     @property
     def n_images(self) -> int:

@@ -38,6 +38,8 @@ class ParsedScene:
     normal_paths: dict[int, Path] = field(default_factory=dict)
     to_world: np.ndarray | None = None
     """A known normalisation (NeuS scale_mat); None lets the loader find the region of interest."""
+    roi_method: str = "scale_mat"
+    """How ``to_world`` was found (reported by ``inspect``): scale_mat, or sparse-points (process-data)."""
     depth_hint: float | None = None
     """Typical distance from the cameras to the scene (LLFF bounds), for forward-facing captures."""
     warnings: list[str] = field(default_factory=list)

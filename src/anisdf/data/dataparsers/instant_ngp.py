@@ -5,8 +5,9 @@ per frame; ``camera_angle_x`` (and ``camera_angle_y``) stand in for missing foca
 COLMAP's convention (pixel centres at ``i + 0.5``), which is anisdf's. ``transform_matrix`` is an OpenGL
 camera-to-world matrix. nerfstudio's ``applied_transform`` is already baked into the frames and is
 ignored, as are instant-ngp's ``aabb_scale``/``scale``/``offset`` (anisdf finds its own region of
-interest). Frames are sorted by ``file_path``; the test split holds out every 8th frame. Optional per-frame
-``mask_path`` entries (nerfstudio) give object masks.
+interest). anisdf's own ``bounding_sphere`` (``{"center": [x, y, z], "radius": r, "method": m}``, written by
+``anisdf process-data``) is the region of interest when present. Frames are sorted by ``file_path``; the test
+split holds out every 8th frame. Optional per-frame ``mask_path`` entries (nerfstudio) give object masks.
 """
 
 from __future__ import annotations
@@ -100,6 +101,7 @@ def parse(root: Path) -> ParsedScene:
         mask_paths = [resolve_image(root, str(m)) for m in with_masks]
     elif any(m is not None for m in with_masks):
         warnings.append(f"{path.name}: only some frames have 'mask_path'; masks ignored")
+    to_world, roi_method = _bounding_sphere(meta, path)
     return ParsedScene(
         format="instant-ngp",
         root=root,
@@ -110,5 +112,26 @@ def parse(root: Path) -> ParsedScene:
         splits=holdout_splits(len(image_paths)),
         distortion=distortion if np.any(distortion != 0) else None,
         mask_paths=mask_paths,
+        to_world=to_world,
+        roi_method=roi_method,
         warnings=warnings,
     )
+
+
+def _bounding_sphere(meta: dict, path: Path) -> tuple[np.ndarray | None, str]:
+    """The similarity mapping the unit sphere onto ``bounding_sphere`` (and its method), or (None, "")."""
+    sphere = meta.get("bounding_sphere")
+    if sphere is None:
+        return None, "bounding-sphere"
+    if not isinstance(sphere, dict):
+        raise DataError(path, "'bounding_sphere' must be an object with 'center' and 'radius'")
+    center = require(sphere, "center", path, "bounding_sphere")
+    if not isinstance(center, list) or len(center) != 3:
+        raise DataError(path, f"bounding_sphere: 'center' must be a list of 3 numbers, got {center!r}")
+    radius = as_float(require(sphere, "radius", path, "bounding_sphere"), path, "bounding_sphere: 'radius'")
+    if radius <= 0:
+        raise DataError(path, f"bounding_sphere: 'radius' must be positive, got {radius:g}")
+    m = np.eye(4)
+    m[:3, :3] *= radius
+    m[:3, 3] = [as_float(v, path, "bounding_sphere: 'center'") for v in center]
+    return m, str(sphere.get("method", "bounding-sphere"))
