@@ -301,9 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="scene folder to write (images/, colmap/, transforms.json)")
     s.add_argument("--matcher", choices=["exhaustive", "sequential", "vocab"], default=None,
                    help="image pairs to match (default: sequential for a video, exhaustive for photos)")
-    s.add_argument("--max-frames", type=int, default=None,
+    s.add_argument("--max-frames", type=int_at_least(1), default=None,
                    help="keep this many evenly spread images (default: 150 for a video, every photo)")
-    s.add_argument("--downscale", type=int, default=1, help="divide the image size by this integer first")
+    s.add_argument("--downscale", type=int_at_least(1), default=1, help="divide the image size by this integer first")
     s.add_argument("--camera-model", default="simple_radial",
                    help="COLMAP camera model: simple_radial, radial, opencv, pinhole, ... (others are undistorted)")
     s.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
