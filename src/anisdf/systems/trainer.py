@@ -33,6 +33,7 @@ from anisdf.eval.metrics import psnr_from_mse
 from anisdf.export.atomic import write_text_atomic
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.systems.checkpoint import atomic_save, load_checkpoint
+from anisdf.systems.cpu_threads import ThreadTuner
 
 log = logging.getLogger("anisdf")
 
@@ -263,6 +264,9 @@ class Trainer:
         # a one-off compile is not training time and must not eat into the budget's schedule
         with torch.no_grad():
             self.model.geometry.sdf(torch.zeros(1, 3, device=self.device))
+        # on a shared CPU the fastest thread count is measured, not assumed (time budgets only: see cpu_threads)
+        threads = torch.get_num_threads()
+        tuner = ThreadTuner(threads) if timed and self.device.type == "cpu" else None
         t_start = self.clock()
         t0_seconds = self.state.train_seconds
         total = cfg.train.max_steps
@@ -282,6 +286,8 @@ class Trainer:
                 stats = self.train_step()
                 dt = self.clock() - t
                 self.state.train_seconds = t0_seconds + (self.clock() - t_start)
+                if tuner is not None:
+                    tuner.observe(dt, stats["n_samples"])
                 sps_window = (sps_window + [(dt, stats["n_samples"])])[-20:]
                 sps = sum(n for _, n in sps_window) / max(sum(d for d, _ in sps_window), 1e-9)
                 stats["samples_per_s"] = sps
@@ -304,6 +310,7 @@ class Trainer:
         except KeyboardInterrupt:
             status = "interrupted"
         finally:
+            torch.set_num_threads(threads)
             bar.close()
             logf.close()
         if status == "done" and timed:  # the last step ran at the deadline: the schedule stands at its end
