@@ -81,8 +81,7 @@ def march(origins: Tensor, dirs: Tensor, grid: OccupancyGrid | None, radius: flo
         t = n0[:, None] + (torch.arange(n_steps, device=dev)[None] + u) * step  # [R, K]
         keep = t < f0[:, None]
         if grid is not None:
-            pts = o[:, None] + d[:, None] * t[..., None]
-            keep &= grid.query(pts)
+            keep &= grid.query_rays(o, d, t)
         r_idx, k_idx = keep.nonzero(as_tuple=True)
         out_r.append(r_idx + s)
         out_t.append(t[r_idx, k_idx])
