@@ -9,6 +9,7 @@ import pytest
 import yaml
 
 from anisdf.config import Config, config_from_dict, load_config, preset_names, set_key
+from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import AnisdfError
 
 
@@ -161,3 +162,23 @@ def test_a_saved_config_with_a_bad_value_is_refused():
     d["loss"]["rgb"] = "l2"
     with pytest.raises(AnisdfError, match="config key 'loss.rgb' must be one of"):
         config_from_dict(d)
+
+
+@pytest.mark.parametrize(("fmt", "masks", "kind"), [("nerf-synthetic", False, "object"), ("neus", False, "object"),
+                                                    ("instant-ngp", True, "object"), ("llff", False, "unbounded"),
+                                                    ("colmap", False, "unbounded")])
+def test_auto_preset_follows_the_kind_of_data(tmp_path, fmt, masks, kind):
+    """``--preset auto`` (train's default): objects (alpha or masks) get the NeRF-synthetic preset, opaque photos
+    without masks the unbounded Mip-NeRF 360 one, reading its own images when there is no images_4 folder."""
+    from anisdf.systems.commands import AUTO_PRESETS, auto_preset, data_kind
+
+    write_test_scene(tmp_path, fmt, masks=masks)
+    assert data_kind(tmp_path) == kind
+    preset, extra = auto_preset(tmp_path)
+    assert preset == AUTO_PRESETS[kind]
+    cfg = load_config(preset, extra)
+    assert cfg.data.images_dir == ""
+    if kind == "unbounded":
+        assert cfg.renderer.background_model == "nerf" and cfg.preset == "mipnerf360"
+        (tmp_path / "images_4").mkdir()
+        assert auto_preset(tmp_path) == ("mipnerf360", [])

@@ -71,7 +71,9 @@ def out_folder(text: str) -> str:
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     from anisdf.config import preset_names
 
-    p.add_argument("--preset", default=None, help=f"preset name ({', '.join(preset_names())}) or a YAML file")
+    p.add_argument("--preset", default="auto",
+                   help=f"preset name ({', '.join(preset_names())}) or a YAML file; auto (default): nerf-synthetic "
+                   "for objects (alpha or masks), mipnerf360 for opaque photos without masks")
     p.add_argument("overrides", nargs="*", metavar="key=value",
                    help="config overrides, e.g. geometry.kind=single appearance.kind=pe renderer.grid_resolution=64")
 

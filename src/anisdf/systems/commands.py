@@ -72,6 +72,42 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
     return cfg
 
 
+AUTO_PRESETS = {"object": "nerf-synthetic", "unbounded": "mipnerf360"}
+"""``--preset auto``: the paper's preset for the kind of data (objects: images with alpha or masks; unbounded: opaque
+photos without masks, whose surroundings the background field carries)."""
+
+
+def data_kind(data: Path) -> str:
+    """``object`` when the dataset has masks or images with transparent pixels, else ``unbounded``; reads the
+    cameras and the first image only."""
+    from PIL import Image
+
+    from anisdf.data.dataparsers import parse_dataset
+
+    parsed = parse_dataset(data)
+    if parsed.mask_paths:
+        return "object"
+    with Image.open(parsed.image_paths[0]) as im:
+        if "A" in im.getbands() and im.getchannel("A").getextrema()[0] < 255:
+            return "object"
+    return "unbounded"
+
+
+def auto_preset(data: Path) -> tuple[str, list[str]]:
+    """The preset ``--preset auto`` picks for ``data`` and the overrides it needs, said in the log."""
+    kind = data_kind(data)
+    preset, extra = AUTO_PRESETS[kind], []
+    # Mip-NeRF 360's preset reads images_4 as the paper does; a capture without that folder keeps its own images
+    images_dir = load_config(preset).data.images_dir
+    if images_dir and not (data / images_dir).is_dir():
+        extra.append("data.images_dir=")
+    why = ("images with alpha or masks: an object" if kind == "object"
+           else "opaque photos without masks: an unbounded scene, the background field learns the surroundings")
+    log.info("preset auto: %s (%s)%s", preset, why,
+             "; on a CPU, --preset cpu-quick trains in 10 minutes" if not torch.cuda.is_available() else "")
+    return preset, extra
+
+
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
           max_steps: int | None = None, max_minutes: float | None = None, device: str | None = None,
           resume: bool = False, progress: bool = True) -> dict[str, Any]:
@@ -83,11 +119,15 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
     ck = None
     if resume:
         ck = load_checkpoint(ckpt_path)
-        cfg = _resume_config(out, config_from_dict(ck["config"]), preset, overrides or [])
+        cfg = _resume_config(out, config_from_dict(ck["config"]), None if preset == "auto" else preset,
+                             overrides or [])
     else:
         if ckpt_path.exists():
             raise AnisdfError(f"{out}: already holds a run; pass --resume to continue it or choose another --out")
-        cfg = load_config(preset, overrides)
+        extra: list[str] = []
+        if preset == "auto":
+            preset, extra = auto_preset(data)
+        cfg = load_config(preset, [*extra, *(overrides or [])])
     if max_steps:
         cfg.train.max_steps = max_steps
         if max_minutes is None and not resume:  # `--max-steps N` alone asks for N steps, not the preset's budget
