@@ -310,4 +310,7 @@ def _write_colmap(t: SceneTruth, binary: bool) -> None:
             lines.append(f"{image_id} {vals} 1 {name}")
             lines.append("" if k % 2 else "1.5 2.5 -1 3.5 4.5 7")
         (d / "images.txt").write_text("\n".join(lines) + "\n")
-    (d / "points3D.txt").write_text("# empty\n")
+    if binary:  # a model has its three files in one format; no 3D points here
+        (d / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+    else:
+        (d / "points3D.txt").write_text("# empty\n")

@@ -43,7 +43,7 @@ def require_pycolmap() -> Any:
         import pycolmap
     except ImportError:
         raise AnisdfError("process-data needs pycolmap (a CPU wheel, no COLMAP binary): "
-                          "pip install 'anisdf[colmap]'") from None
+                          "pip install pycolmap") from None
     return pycolmap
 
 
