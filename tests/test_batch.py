@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -18,7 +19,7 @@ from test_training import TINY
 import anisdf
 from anisdf.cli import main
 from anisdf.eval.paper_tables import METRICS
-from anisdf.systems import cluster
+from anisdf.systems import cluster, reproduce
 
 try:
     import ray
@@ -27,7 +28,7 @@ except ImportError:
 needs_ray = pytest.mark.skipif(ray is None, reason="Ray is not installed (pip install 'anisdf[cluster]'); the batch "
                                                    "runner's Ray path is not tested")
 
-STEPS = 24
+STEPS = 16
 
 
 def _jobs(scene: Path, folder: Path) -> Path:
@@ -90,7 +91,7 @@ def test_ray_missing_is_a_clear_error(local_batch, tmp_path, monkeypatch, capsys
     assert "pip install 'anisdf[cluster]'" in capsys.readouterr().err
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def local_ray():
     src = str(Path(anisdf.__file__).resolve().parents[1])  # the workers import this anisdf
     path = os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])])
@@ -133,3 +134,18 @@ def test_ray_batch_survives_a_killed_worker(local_batch, local_ray, tmp_path, mo
         # resumed from its checkpoint, the killed run is the run that was never interrupted (1 thread each)
         for m in METRICS:
             assert ours[m] == pytest.approx(theirs[m], rel=1e-6), (ours["name"], m)
+
+
+@needs_ray
+def test_reproduce_on_ray_writes_the_rows_of_a_local_call(toy_scene, local_ray, tmp_path):
+    root = tmp_path / "nerf_synthetic"
+    shutil.copytree(toy_scene, root / "lego")
+    opts = {"scale": "cpu", "minutes": 0.0, "max_steps": 2, "overrides": TINY, "max_views": 1,
+            "mesh_resolution": 32, "chamfer_points": 2000, "progress": False, "seeds": [0, 1], "cpus_per_run": 1}
+    here = reproduce.reproduce("nerf-synthetic", root, tmp_path / "here", **opts)
+    there = reproduce.reproduce("nerf-synthetic", root, tmp_path / "there", ray="local", **opts)
+    assert [(r["scene"], r["seed"]) for r in there["rows"]] == [("lego", 0), ("lego", 1)]  # the table's order
+    for a, b in zip(here["rows"], there["rows"], strict=True):
+        assert b["status"] == "done" and b["device"] == a["device"]  # on Ray: the worker's (the same CPU here)
+        assert {m: b[m] for m in METRICS} == {m: a[m] for m in METRICS}
+    assert json.loads((tmp_path / "there" / "reproduce.json").read_text())["rows"] == there["rows"]

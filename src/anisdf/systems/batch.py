@@ -165,7 +165,7 @@ def run_batch(jobs_file: Path, out: Path, ray: str | None = None, device: str | 
     def on_result(task: Task, res: dict[str, Any] | None, info: dict[str, Any], err: BaseException | None) -> None:
         row = rows[task.key]
         row.update(res if res is not None else {"status": "failed", "error": str(err)})
-        row.update(attempts=info.get("attempt"), host=info.get("host"),
+        row.update(attempts=info.get("attempt"), host=info.get("host"), device=info.get("device"),
                    finished=datetime.now(UTC).isoformat(timespec="seconds"))
         figures = ", ".join(f"{m} {row[m]:.4g}" for m in METRICS if row.get(m) is not None)
         log.info("%s: %s%s", task.key, row["status"], f" ({figures})" if figures else f": {row.get('error', '')}")

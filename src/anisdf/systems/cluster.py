@@ -103,8 +103,11 @@ def attempt(fn: Callable[..., dict[str, Any]], run: Path, kwargs: dict[str, Any]
     run.mkdir(parents=True, exist_ok=True)
     info = {"attempt": int(read_attempt(run).get("attempt", 0)) + 1, "host": socket.gethostname(), "pid": os.getpid(),
             "started": datetime.now(UTC).isoformat(timespec="seconds"), "ray": remote}
-    if remote and torch.cuda.is_available():
-        info["gpu"] = torch.cuda.get_device_name(0)
+    if remote:  # where the run went: the worker's GPU, else its CPU model
+        from anisdf.systems.reproduce import machine_info
+
+        m = machine_info()
+        info["device"] = m["gpu"] or m["cpu"]
     write_text_atomic(run / "job.json", json.dumps(info, indent=2))
     threads = torch.get_num_threads()
     if cpus:

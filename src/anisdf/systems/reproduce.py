@@ -208,7 +208,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
             errors.append(err)
             return
         i, name, config, seed = meta[task.key]
-        where = (info.get("gpu") or info.get("host")) if info.get("ray") else None
+        where = info.get("device") if info.get("ray") else None
         row = {"scene": name, "config": config, "seed": seed, "paper": table.paper_row(name, config),
                "run": str(task.run), "device": where or result["machine"]["gpu"] or result["machine"]["cpu"], **res}
         row["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
