@@ -9,6 +9,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -85,13 +86,45 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _without_option(argv: list[str], name: str) -> list[str]:
+    """``argv`` without ``name VALUE`` / ``name=VALUE``."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == name:
+            skip = True
+        elif not a.startswith(name + "="):
+            out.append(a)
+    return out
+
+
+def _torchrun(nproc: int, argv: list[str]) -> int:
+    """``anisdf train --nproc N``: the same command under ``torchrun --standalone --nproc-per-node N`` (one node)."""
+    import shlex
+    import subprocess
+
+    if "WORLD_SIZE" in os.environ:
+        raise AnisdfError("--nproc: this process is already one rank of a torchrun job; drop --nproc")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
+           "-m", "anisdf", *_without_option(argv, "--nproc")]
+    log.info("launching %s", shlex.join(cmd))
+    return subprocess.call(cmd)
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from anisdf.systems.commands import train
 
+    if args.nproc > 1:
+        return _torchrun(args.nproc, args.argv)
+    rank = int(os.environ.get("RANK", "0"))
+    if rank > 0:  # under torchrun rank 0 speaks for the job
+        logging.getLogger("anisdf").setLevel(logging.WARNING)
     summary = train(Path(args.data), Path(args.out), preset=args.preset, overrides=args.overrides,
                     max_steps=args.max_steps, max_minutes=args.max_minutes, device=args.device,
                     resume=args.resume, progress=not args.no_progress)
-    print(json.dumps(summary, indent=2))
+    if rank == 0:
+        print(json.dumps(summary, indent=2))
     return 0
 
 
@@ -180,7 +213,7 @@ def _reproduce_command(args: argparse.Namespace) -> str:
 
     parts = ["anisdf", "reproduce", args.table, "--data", args.data, "--out", args.out, "--scale", args.scale]
     for opt in ("scenes", "minutes", "seeds", "max_steps", "max_views", "mesh_resolution", "chamfer_points",
-                "dtu_eval", "device"):
+                "dtu_eval", "device", "ray", "cpus_per_run"):
         value = getattr(args, opt)
         if value is not None and value != _REPRODUCE_DEFAULTS.get(opt):
             parts += [f"--{opt.replace('_', '-')}", str(value)]
@@ -203,9 +236,37 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
               device=args.device, overrides=args.overrides, max_steps=args.max_steps, max_views=args.max_views,
               mesh_resolution=args.mesh_resolution, chamfer_points=args.chamfer_points,
               dtu_eval=Path(args.dtu_eval) if args.dtu_eval else None, command=_reproduce_command(args),
-              progress=not args.no_progress)
+              progress=not args.no_progress, ray=args.ray, cpus_per_run=args.cpus_per_run)
     print(Path(args.out) / "reproduce.md")
     return 0
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    from anisdf.systems.batch import run_batch
+
+    result = run_batch(Path(args.jobs), Path(args.out), ray=args.ray, device=args.device,
+                       progress=not args.no_progress)
+    failed = [r["name"] for r in result["runs"] if r["status"] != "done"]
+    print(Path(args.out) / "batch.json")
+    if failed:
+        print(f"anisdf: error: {len(failed)} of {len(result['runs'])} jobs did not finish: {', '.join(failed)} "
+              "(see batch.json; rerun to retry them)", file=sys.stderr)
+        return 1
+    return 0
+
+
+def ray_address(text: str) -> str:
+    """An argparse ``type=`` for ``--ray``: local, auto, or a cluster address (not a key=value override)."""
+    if "=" in text:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Ray address; put key=value overrides before --ray, or "
+                                         "write --ray local")
+    return text
+
+
+def _add_ray_args(s: argparse.ArgumentParser, what: str) -> None:
+    s.add_argument("--ray", nargs="?", const="local", default=None, type=ray_address, metavar="auto|ADDRESS",
+                   help=f"run the {what} as tasks on Ray: alone (or 'local') starts Ray on this machine, 'auto' joins "
+                        "the cluster this machine belongs to, else ray://HOST:10001 or HOST:6379 (anisdf[cluster])")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -227,6 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default=None, help="auto | cpu | cuda[:N]")
     s.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/last.pt")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.add_argument("--nproc", type=int_at_least(1), default=1,
+                   help="data-parallel ranks on this machine (torchrun --standalone; one per GPU, gloo on CPUs); "
+                        "for several machines run torchrun yourself (docs/distributed.md)")
     _add_config_args(s)
     s.set_defaults(fn=cmd_train)
 
@@ -353,14 +417,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="folder with DTU's official ObsMask/ and Points/stl/ (default: beside the scenes)")
     s.add_argument("--device", default=None)
     s.add_argument("--no-progress", action="store_true")
+    _add_ray_args(s, "runs")
+    s.add_argument("--cpus-per-run", type=int_at_least(1), default=None,
+                   help="torch threads of each run, and the CPUs each asks of Ray (default: all here, 1 on Ray)")
     s.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for every run")
     s.set_defaults(fn=cmd_reproduce)
+
+    s = sub.add_parser("batch", help="train, mesh and evaluate a list of jobs (JOBS.yaml) -> OUT/NAME, OUT/batch.json")
+    s.add_argument("jobs", help="YAML list of {name, data, preset, overrides: [key=value], minutes} (see "
+                               "docs/distributed.md)")
+    s.add_argument("--out", required=True, type=out_folder, help="folder of the runs and batch.json (a rerun resumes)")
+    s.add_argument("--device", default=None)
+    s.add_argument("--no-progress", action="store_true")
+    _add_ray_args(s, "jobs")
+    s.set_defaults(fn=cmd_batch)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     if extra:  # key=value overrides may come after options (argparse stops the positional list at them)
         bad = [e for e in extra if e.startswith("-") or "=" not in e]
         if bad or not hasattr(args, "overrides"):

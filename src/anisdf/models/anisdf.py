@@ -150,8 +150,10 @@ class AniSDFModel(nn.Module):
 
     # ----------------------------------------------------------------------------------------- losses
     def losses(self, out: dict[str, Tensor], target: Tensor, mask: Tensor | None,
-               generator: torch.Generator | None) -> dict[str, Tensor]:
-        """Loss dict (Eq. 18): weighted terms and their sum under ``total``."""
+               generator: torch.Generator | None, sample_share: float = 1.0) -> dict[str, Tensor]:
+        """Loss dict (Eq. 18): weighted terms and their sum under ``total``. ``sample_share`` scales the weights of
+        the means over samples (eikonal, curvature) in ``total``: a rank's share of all ranks' samples times their
+        number, so that averaging the ranks' gradients gives the gradient over all samples (systems/distributed)."""
         lc = self.cfg.loss
         step = self.step_int
         terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out["rgb"], target, lc.rgb)}
@@ -162,7 +164,7 @@ class AniSDFModel(nn.Module):
         weights: dict[str, float] = {"rgb": 1.0}
         if lc.eikonal > 0:
             terms["eikonal"] = L.eikonal_loss(grad)
-            weights["eikonal"] = lc.eikonal
+            weights["eikonal"] = lc.eikonal if sample_share == 1.0 else lc.eikonal * sample_share
         curv_w = self.curvature_weight()
         if curv_w > 0:
             x, n = out["_x"], out["_normal"]
@@ -172,7 +174,7 @@ class AniSDFModel(nn.Module):
             x_eps = L.tangent_perturbation(x[sel], n[sel], self.finest_cell(), generator)
             _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
             terms["curvature"] = L.curvature_loss(n[sel], F.normalize(g_eps, dim=-1))
-            weights["curvature"] = curv_w
+            weights["curvature"] = curv_w if sample_share == 1.0 else curv_w * sample_share
         orient_w = _ramp(lc.orientation_start, lc.orientation, step, lc.orientation_ramp_steps)
         if orient_w > 0:
             terms["orientation"] = L.orientation_loss(out["_weights"], out["_normal"], out["_dirs"],

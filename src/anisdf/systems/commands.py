@@ -111,7 +111,10 @@ def auto_preset(data: Path) -> tuple[str, list[str]]:
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
           max_steps: int | None = None, max_minutes: float | None = None, device: str | None = None,
           resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Train a run (``resume``: continue it). Under torchrun every rank calls this and joins the job
+    (systems/distributed.py); the summary is the same on every rank."""
     from anisdf.data.dataparsers import load_scene
+    from anisdf.systems import distributed
     from anisdf.systems.checkpoint import load_checkpoint
     from anisdf.systems.trainer import Trainer, pick_device
 
@@ -134,16 +137,22 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
             cfg.train.max_minutes = 0.0
     if max_minutes is not None:
         cfg.train.max_minutes = max_minutes
-    dev = pick_device(device or cfg.train.device)
-    scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
-                       images_dir=cfg.data.images_dir)
-    for w in scene.warnings:
-        log.warning("warning: %s", w)
-    trainer = Trainer(cfg, scene, out, dev, progress=progress)
-    if ck is not None:
-        trainer.load_state_dict(ck)
-        log.info("resuming %s at step %d", out, trainer.state.step)
-    return trainer.fit()
+    ctx = distributed.init_from_env(device or cfg.train.device)
+    dev = ctx.device if ctx is not None else pick_device(device or cfg.train.device)
+    try:
+        scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
+                           images_dir=cfg.data.images_dir)
+        if ctx is None or ctx.is_main:
+            for w in scene.warnings:
+                log.warning("warning: %s", w)
+        trainer = Trainer(cfg, scene, out, dev, progress=progress, dist=ctx)
+        if ck is not None:
+            trainer.load_state_dict(ck)
+            if trainer.is_main:
+                log.info("resuming %s at step %d", out, trainer.state.step)
+        return trainer.fit()
+    finally:
+        distributed.shutdown(ctx)
 
 
 MESH_SIDECAR = "mesh.json"

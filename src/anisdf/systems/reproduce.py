@@ -5,6 +5,7 @@ Each (scene, configuration, seed) is one run folder, ``OUT/<scene>/<config>`` (`
 than 0), trained with :func:`anisdf.systems.commands.train` and scored with :func:`~anisdf.systems.commands.evaluate`.
 A call resumes where the previous one stopped: rows already in reproduce.json are kept, an unfinished run is
 continued with ``--resume``, and reproduce.json (written atomically) and reproduce.md are rewritten after each row.
+With ``ray`` the runs go to a Ray cluster side by side (systems/cluster.py); the rows keep the table's order.
 """
 
 from __future__ import annotations
@@ -74,11 +75,6 @@ def _run_dir(out: Path, scene: str, config: str, seed: int) -> Path:
     return out / scene / (config if seed == 0 else f"{config}-seed{seed}")
 
 
-def _read_status(run: Path) -> str | None:
-    info = run / "run.json"
-    return json.loads(info.read_text()).get("status") if info.is_file() else None
-
-
 def _dtu_chamfer(run: Path, scene_dir: Path, scene: str, dtu_eval: Path | None,
                  mesh_resolution: int) -> tuple[dict[str, Any] | None, str | None]:
     """The official DTU Chamfer (mm) of the run's mesh when ``anisdf.eval.dtu`` and the official evaluation files
@@ -108,25 +104,14 @@ def _dtu_chamfer(run: Path, scene_dir: Path, scene: str, dtu_eval: Path | None,
 def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], table: PaperTable, scene: str,
                     max_minutes: float | None, max_steps: int | None, device: str | None, progress: bool,
                     eval_opts: dict[str, Any], dtu_eval: Path | None) -> dict[str, Any]:
-    from anisdf.systems.commands import evaluate, train
+    from anisdf.systems.cluster import train_or_resume
+    from anisdf.systems.commands import evaluate
 
     notes: list[str] = []
-    status = _read_status(run)
-    if status != "done":
-        resume = (run / "checkpoints" / "last.pt").is_file()
-        if resume:
-            log.info("  resuming the unfinished run %s (%s)", run, status)
-        try:
-            summary = train(data, run, preset=None if resume else preset, overrides=None if resume else overrides,
-                            max_steps=max_steps, max_minutes=None if resume else max_minutes, device=device,
-                            resume=resume, progress=progress)
-        except TrainingDiverged as e:
-            return {"status": "diverged", "notes": [str(e)]}
-        status = summary["status"]
-        if status == "interrupted":
-            raise KeyboardInterrupt
-        if status != "done":
-            raise AnisdfError(f"{run}: training ended with status '{status}'; rerun to resume it")
+    try:
+        train_or_resume(data, run, preset, overrides, max_minutes, max_steps, device, progress)
+    except TrainingDiverged as e:
+        return {"status": "diverged", "notes": [str(e)]}
     t0 = time.perf_counter()
     # DTU is scored by the official protocol only (below), never against a mesh of the scene folder
     gt = data / "gt_mesh.ply" if table.name != "dtu" else None
@@ -153,11 +138,17 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
               minutes: float | None = None, seeds: list[int] | None = None, device: str | None = None,
               overrides: list[str] | None = None, max_steps: int | None = None, max_views: int = 0,
               mesh_resolution: int = 512, chamfer_points: int = 1_000_000, dtu_eval: Path | None = None,
-              command: str | None = None, progress: bool = True) -> dict[str, Any]:
+              command: str | None = None, progress: bool = True, ray: str | None = None,
+              cpus_per_run: int | None = None) -> dict[str, Any]:
     """Train and evaluate every (scene, configuration, seed) of table ``table_name`` found under ``data``; returns
     the content of OUT/reproduce.json. ``minutes`` is each run's time budget (cpu scale: 10 unless given; paper
-    scale: the preset's step schedule unless given); ``overrides`` and ``max_steps`` apply to every run."""
+    scale: the preset's step schedule unless given); ``overrides`` and ``max_steps`` apply to every run. ``ray``
+    (``local``, ``auto`` or an address) runs them on Ray, ``cpus_per_run`` threads each (and CPUs asked of Ray)."""
     table = get_table(table_name)
+    if ray is not None:
+        from anisdf.systems.cluster import require_ray
+
+        require_ray()
     if scale not in SCALES:
         raise AnisdfError(f"--scale must be one of {', '.join(SCALES)}, not '{scale}'")
     seeds = list(seeds) if seeds else [0]
@@ -189,6 +180,10 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
     plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
     _write(out, table, result)
     eval_opts = {"max_views": max_views, "mesh_resolution": mesh_resolution, "chamfer_points": chamfer_points}
+    from anisdf.systems.cluster import Task, run_tasks
+
+    tasks: list[Task] = []
+    meta: dict[str, tuple[int, str, str, int]] = {}
     for i, (name, path, config, seed) in enumerate(plan, 1):
         tag = f"[{i}/{len(plan)}] {name} {config} seed {seed}"
         if (name, config, seed) in done:
@@ -196,19 +191,39 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
             continue
         preset, ovr = run_settings(table, name, config, scale, seed, overrides or [])
         run = _run_dir(out, name, config, seed)
-        log.info("%s: training %s (preset %s %s)", tag, run, preset, " ".join(ovr))
+        log.info("%s: %s %s (preset %s %s)", tag, "submitting" if ray else "training", run, preset, " ".join(ovr))
+        meta[tag] = (i, name, config, seed)
+        tasks.append(Task(key=tag, run=run, fn=_train_and_eval, cpus=cpus_per_run, kwargs={
+            "data": path, "run": run, "preset": preset, "overrides": ovr, "table": table, "scene": name,
+            "max_minutes": minutes, "max_steps": max_steps, "device": device, "progress": progress and not ray,
+            "eval_opts": eval_opts, "dtu_eval": dtu_eval}))
+    order: dict[int, dict[str, Any]] = {}
+    errors: list[BaseException] = []
+
+    def on_result(task: Task, res: dict[str, Any] | None, info: dict[str, Any], err: BaseException | None) -> None:
+        if err is not None:
+            if not ray:
+                raise err
+            log.error("%s: %s", task.key, err)  # on Ray the other runs go on; the row is left for a rerun
+            errors.append(err)
+            return
+        i, name, config, seed = meta[task.key]
+        where = info.get("device") if info.get("ray") else None
         row = {"scene": name, "config": config, "seed": seed, "paper": table.paper_row(name, config),
-               "run": str(run), "device": result["machine"]["gpu"] or result["machine"]["cpu"],
-               **_train_and_eval(path, run, preset, ovr, table, name, minutes, max_steps,
-                                                  device, progress, eval_opts, dtu_eval)}
+               "run": str(task.run), "device": where or result["machine"]["gpu"] or result["machine"]["cpu"], **res}
         row["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
         row = {k: row.get(k) for k in ("scene", "config", "seed", *METRICS, "paper", "seconds", "train_seconds",
                                        "eval_seconds", "steps", "status", "device", "run", "finished", "notes")}
-        result["rows"].append(row)
-        log.info("%s: %s", tag, ", ".join(f"{m} {row[m]:.4g}" for m in METRICS if row[m] is not None)
+        order[i] = row
+        result["rows"] = list(old_rows) + [order[k] for k in sorted(order)]
+        log.info("%s: %s", task.key, ", ".join(f"{m} {row[m]:.4g}" for m in METRICS if row[m] is not None)
                  or row["status"])
         _write(out, table, result)
+
+    run_tasks(tasks, on_result, ray_address=ray)
     _write(out, table, result)
+    if errors:
+        raise AnisdfError(f"{len(errors)} of {len(tasks)} runs failed (rerun to retry them); first: {errors[0]}")
     return result
 
 

@@ -8,6 +8,9 @@ machine's speed (:meth:`Trainer.schedule_step`).
 A run folder holds ``config.yaml``, ``run.json`` (dataset path), ``checkpoints/last.pt``, ``tb/`` (TensorBoard),
 ``val/`` (validation images) and ``log.jsonl``. Checkpoints are atomic and carry every random state, so
 ``--resume`` continues exactly where an uninterrupted run would be (same seed, same result on CPU).
+
+Under torchrun (``dist``, systems/distributed.py) each rank draws its own rays and the gradients are averaged; only
+rank 0 writes the run folder. A resume may change the number of ranks.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +30,7 @@ import yaml
 from torch.nn.utils import parametrize
 
 from anisdf.config import Config, config_from_dict
-from anisdf.data.rays import RayDataset, eval_background
+from anisdf.data.rays import RayBatch, RayDataset, eval_background
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.metrics import psnr_from_mse
@@ -34,8 +38,12 @@ from anisdf.export.atomic import write_text_atomic
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.systems.checkpoint import atomic_save, load_checkpoint
 from anisdf.systems.cpu_threads import ThreadTuner
+from anisdf.systems.distributed import Dist, rank_seed
 
 log = logging.getLogger("anisdf")
+
+LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "total")
+"""Every name AniSDFModel.losses can return."""
 
 
 def pick_device(name: str) -> torch.device:
@@ -78,10 +86,14 @@ class TrainState:
 
 
 class Trainer:
-    def __init__(self, cfg: Config, scene: Scene, out_dir: Path, device: torch.device, progress: bool = True):
+    def __init__(self, cfg: Config, scene: Scene, out_dir: Path, device: torch.device, progress: bool = True,
+                 dist: Dist | None = None):
         self.cfg, self.scene, self.out = cfg, scene, Path(out_dir)
         self.device = device
-        self.progress = progress
+        self.dist = dist
+        self.world_size = 1 if dist is None else dist.world_size
+        self.is_main = dist is None or dist.is_main
+        self.progress = progress and self.is_main
         # bf16 autocast for the radiance heads (the SDF stays float32, see SDFField.forward); CUDA only: on CPU it
         # has not been measured to help, and the tests set it to check the same code path without a GPU
         self.use_amp = cfg.train.amp and device.type == "cuda"
@@ -91,6 +103,9 @@ class Trainer:
         # every random draw of a step comes from one generator on the training device: on CUDA, drawing on the
         # host and copying (randperm of ~250k samples, the occupancy jitter) cost milliseconds a step
         self.gen = torch.Generator(device).manual_seed(cfg.train.seed)
+        # rays, marching jitter and loss subsets: one stream per rank (one process: the same generator)
+        self.ray_gen = self.gen if dist is None else torch.Generator(device).manual_seed(
+            rank_seed(cfg.train.seed, dist.rank))
         if cfg.geometry.encoding_backend != "torch":
             from anisdf.fields.hash_grid import load_fast_encoder
 
@@ -98,6 +113,8 @@ class Trainer:
             # encoding_backend=fast stops here when the device has none
             load_fast_encoder(required=cfg.geometry.encoding_backend == "fast", device=device)
         self.model = build_model(cfg, scene, device)
+        if dist is not None:
+            dist.broadcast_module(self.model)
         if cfg.train.compile:
             self.model.compile_heads()
         o = cfg.optim
@@ -125,6 +142,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "to_world": np.asarray(self.scene.to_world),
             "data": str(self.scene.root),
+            "world_size": self.world_size,
         }
 
     def load_state_dict(self, ck: dict[str, Any]) -> None:
@@ -138,7 +156,27 @@ class Trainer:
             log.warning("the checkpoint was written on another kind of device; random draws restart from the "
                         "seed, so this resumed run is not bit-identical to an uninterrupted one")
         torch.set_rng_state(ck["torch_rng"])
+        if self.dist is not None:
+            self._load_rank_generator(ck)
+        elif ck.get("world_size", 1) > 1:
+            log.info("resuming a run of %d ranks in one process: its rays are drawn from rank 0's stream",
+                     ck["world_size"])
         self.model.set_step(self.schedule_step())
+
+    def _load_rank_generator(self, ck: dict[str, Any]) -> None:
+        """This rank's ray stream: as saved when the checkpoint had as many ranks, else a fresh stream."""
+        states = ck.get("rank_generators") or []
+        if len(states) == self.world_size:
+            try:
+                self.ray_gen.set_state(states[self.dist.rank])
+                return
+            except (RuntimeError, ValueError):
+                pass
+        self.ray_gen.manual_seed(rank_seed(self.cfg.train.seed, self.dist.rank, self.state.step))
+        if self.is_main:
+            log.warning("the checkpoint was written by %d rank(s) and this run has %d: each rank draws its rays from "
+                        "a fresh stream, so this resumed run is not bit-identical to an uninterrupted one",
+                        ck.get("world_size", 1), self.world_size)
 
     @property
     def budget_seconds(self) -> float:
@@ -158,16 +196,21 @@ class Trainer:
             return self.state.train_seconds >= self.budget_seconds
         return self.state.step >= self.cfg.train.max_steps
 
-    def save(self) -> None:
+    def save(self, gather: bool = True) -> None:
+        """Write the checkpoint (rank 0; with ranks, a collective that every rank calls unless ``gather`` is off)."""
         for p in self.model.parameters():
             if not torch.isfinite(p).all():
                 raise TrainingDiverged("parameters became non-finite; not overwriting the last good checkpoint "
                                        f"{self.ckpt_path}")
-        atomic_save(self.state_dict(), self.ckpt_path)
+        states = self.dist.gather_generator_states(self.ray_gen) if self.dist is not None and gather else None
+        if self.is_main:
+            atomic_save({**self.state_dict(), **({"rank_generators": states} if states else {})}, self.ckpt_path)
 
     def write_run_files(self, status: str = "running") -> None:
         """``config.yaml`` and ``run.json`` (dataset, preset, normalisation, and the run's status: running, done,
-        interrupted)."""
+        interrupted) and the number of ranks (rank 0 only)."""
+        if not self.is_main:
+            return
         self.out.mkdir(parents=True, exist_ok=True)
         write_text_atomic(self.out / "config.yaml", yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
         write_text_atomic(self.out / "run.json", json.dumps({
@@ -175,6 +218,7 @@ class Trainer:
             "preset": self.cfg.preset, "to_world": np.asarray(self.scene.to_world).tolist(),
             "status": status, "step": self.state.step, "schedule_step": self.state.schedule_step,
             "schedule": "time" if self.budget_seconds > 0 else "steps", "train_seconds": self.state.train_seconds,
+            "world_size": self.world_size,
         }, indent=2))
 
     @property
@@ -186,6 +230,10 @@ class Trainer:
         return self._writer
 
     # ----------------------------------------------------------------------------------------- step
+    def next_batch(self, n_rays: int) -> RayBatch:
+        """This process's rays for a step (the distributed test replaces it to give one process the ranks' union)."""
+        return self.train_data.sample(n_rays, self.ray_gen)
+
     def train_step(self) -> dict[str, float]:
         st, cfg, model = self.state, self.cfg, self.model
         if not model.training:  # train() walks every submodule; validation is what switches it off
@@ -195,27 +243,39 @@ class Trainer:
         rc = cfg.renderer
         if st.step % rc.grid_update_every == 0:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
-            model.update_grid(self.gen, full=warm)
+            if self.dist is None:
+                model.update_grid(self.gen, full=warm)
+            else:
+                self.dist.update_grid(model, self.gen, full=warm)
         f = lr_factor(st.schedule_step, cfg)
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
-        batch = self.train_data.sample(st.n_rays, self.gen)
+        batch = self.next_batch(st.n_rays)
         # parametrize.cached(): each weight-normed layer's weight is computed once per step instead of once per
         # SDF query (3 queries a step); it is computed first with grad enabled, so the cached copy carries it
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_amp), parametrize.cached():
             model.geometry.cache_weights()
             out = model.render_rays(batch.origins, batch.directions, batch.background, train=True,
-                                    generator=self.gen)
-            terms = model.losses(out, batch.rgb, batch.mask, self.gen)
+                                    generator=self.ray_gen)
+            if self.dist is None:
+                counts = model.last_counts
+                terms = model.losses(out, batch.rgb, batch.mask, self.gen)
+            else:  # per-sample means weighted by this rank's share of all ranks' samples (distributed.py)
+                counts = tuple(self.dist.sum_counts(model.last_counts))
+                share = self.world_size * model.last_counts[0] / max(counts[0], 1)
+                terms = model.losses(out, batch.rgb, batch.mask, self.ray_gen, sample_share=share)
         loss = terms["total"]
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         # every number the step reports is read back at once: on a GPU each read waits for the queue to drain
         mse = torch.mean((out["rgb"].detach().float() - batch.rgb) ** 2)
-        names = list(terms)
-        *term_vals, mse_val, inv_s = torch.stack([terms[k].detach().float() for k in names]
-                                                 + [mse, out["inv_s"].float()]).tolist()
-        stats = dict(zip(names, term_vals, strict=True))
+        if self.dist is None:
+            names = list(terms)
+            *term_vals, mse_val, inv_s = torch.stack([terms[k].detach().float() for k in names]
+                                                     + [mse, out["inv_s"].float()]).tolist()
+            stats = dict(zip(names, term_vals, strict=True))
+        else:  # gradients and reported figures: the mean over ranks, in one all-reduce
+            stats, mse_val, inv_s = self._average_over_ranks(terms, mse, out["inv_s"])
         value = stats["total"]
         if not math.isfinite(value) or (st.step > 100 and st.loss_ema > 0
                                         and value > cfg.loss.explode_factor * st.loss_ema):
@@ -224,15 +284,31 @@ class Trainer:
                 f"(running mean {st.loss_ema:.4g}); the last good checkpoint {self.ckpt_path} is intact. "
                 "Try a lower optim.lr or loss weights.")
         self.opt.step()
-        n_samples, n_marched = model.last_counts
-        # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4)
-        scale = min(rc.samples_per_step / max(n_samples, 1), 4 * rc.samples_per_step / max(n_marched, 1))
+        n_samples, n_marched = counts
+        # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4); the budget
+        # is per rank, the counts of all ranks (so every rank draws as many rays)
+        budget = rc.samples_per_step * self.world_size
+        scale = min(budget / max(n_samples, 1), 4 * budget / max(n_marched, 1))
         st.n_rays = int(min(max(st.n_rays * scale, rc.min_rays), rc.max_rays))
         st.loss_ema = value if st.loss_ema == 0 else 0.98 * st.loss_ema + 0.02 * value
         st.step += 1
-        stats.update(psnr=psnr_from_mse(mse_val), n_samples=n_samples, n_rays=batch.origins.shape[0],
-                     inv_s=inv_s, lr=self.opt.param_groups[0]["lr"], schedule_step=st.schedule_step)
+        stats.update(psnr=psnr_from_mse(mse_val), n_samples=n_samples,
+                     n_rays=batch.origins.shape[0] * self.world_size, inv_s=inv_s,
+                     lr=self.opt.param_groups[0]["lr"], schedule_step=st.schedule_step)
         return stats
+
+    def _average_over_ranks(self, terms: dict[str, torch.Tensor], mse: torch.Tensor,
+                            inv_s: torch.Tensor) -> tuple[dict[str, float], float, float]:
+        """Average the gradients over ranks, and the loss terms (a rank without samples has fewer: each term is
+        reported when some rank has it), the colour MSE and inv_s with them."""
+        zero = mse.new_zeros(())
+        vals = [terms[k].detach().float() if k in terms else zero for k in LOSS_TERMS]
+        flags = [zero + (k in terms) for k in LOSS_TERMS]
+        values = self.dist.average_grads(self.model.parameters(), torch.stack([*vals, *flags, mse, inv_s.float()]))
+        *vals_flags, mse_val, inv_s_val = values.tolist()
+        n = len(LOSS_TERMS)
+        stats = {k: v for k, v, f in zip(LOSS_TERMS, vals_flags[:n], vals_flags[n:], strict=True) if f > 0}
+        return stats, mse_val, inv_s_val
 
     @torch.no_grad()
     def validate(self) -> float:
@@ -276,7 +352,7 @@ class Trainer:
         status = "done"
         last_stats: dict[str, float] = {}
         sps_window: list[tuple[float, int]] = []
-        logf = (self.out / "log.jsonl").open("a")
+        logf = (self.out / "log.jsonl").open("a") if self.is_main else open(os.devnull, "w")  # noqa: SIM115
         try:
             while not self.schedule_done():
                 if max_steps and self.state.step >= max_steps:
@@ -286,6 +362,8 @@ class Trainer:
                 stats = self.train_step()
                 dt = self.clock() - t
                 self.state.train_seconds = t0_seconds + (self.clock() - t_start)
+                if self.dist is not None and timed:  # the time schedule and its end: rank 0's clock everywhere
+                    self.state.train_seconds = self.dist.broadcast_float(self.state.train_seconds)
                 if tuner is not None:
                     tuner.observe(dt, stats["n_samples"])
                 sps_window = (sps_window + [(dt, stats["n_samples"])])[-20:]
@@ -297,7 +375,7 @@ class Trainer:
                 bar.set_postfix(loss=f"{stats['total']:.4f}", psnr=f"{stats['psnr']:.2f}",
                                 samples_s=f"{sps / 1e3:.1f}k", rays=stats["n_rays"],
                                 **({"step": step} if timed else {}), refresh=False)
-                if step % cfg.train.log_every == 0 or step == 1:
+                if self.is_main and (step % cfg.train.log_every == 0 or step == 1):
                     for k, v in stats.items():
                         self.writer.add_scalar(f"train/{k}", v, step)
                     logf.write(json.dumps({"step": step, "time": round(self.state.train_seconds, 2),
@@ -305,7 +383,7 @@ class Trainer:
                     logf.flush()
                 if cfg.train.ckpt_every > 0 and step % cfg.train.ckpt_every == 0:
                     self.save()
-                if cfg.train.val_every > 0 and step % cfg.train.val_every == 0:
+                if self.is_main and cfg.train.val_every > 0 and step % cfg.train.val_every == 0:
                     self.validate()
         except KeyboardInterrupt:
             status = "interrupted"
@@ -316,7 +394,8 @@ class Trainer:
         if status == "done" and timed:  # the last step ran at the deadline: the schedule stands at its end
             self.state.schedule_step = total
             self.model.set_step(total)
-        self.save()
+        # interrupted, the ranks may stand at different points: rank 0 saves without the others' ray streams
+        self.save(gather=status != "interrupted")
         self.write_run_files(status)
         if timed and status == "done":
             log.info("time budget of %g min spent: %d steps, schedule complete", cfg.train.max_minutes,
