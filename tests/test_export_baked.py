@@ -145,7 +145,7 @@ EXPORT_ARGS = ["--faces", "4k", "--texture", "128", "--specular-texture", "64", 
 def exported(toy_scene, tmp_path_factory):
     root = tmp_path_factory.mktemp("export")
     run = root / "run"
-    assert main(["train", str(toy_scene), "--out", str(run), "--preset", "cpu-quick", "--max-steps", "120",
+    assert main(["train", str(toy_scene), "--out", str(run), "--preset", "cpu-quick", "--max-steps", "60",
                  "--no-progress", *TINY]) == 0
     assert main(["export", str(run), "--out", str(root / "k2"), "--lobes", "2", *EXPORT_ARGS]) == 0
     return run, root / "k2"

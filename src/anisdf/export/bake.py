@@ -190,7 +190,7 @@ def _closest_on_triangle(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
     bary = _bary2d(p, a, b, c)
     inside = (bary >= 0).all(-1)
     best = bary.clone()
-    best_d = torch.full((len(p),), float("inf"))
+    best_d = torch.full((len(p),), float("inf"), dtype=p.dtype)
     for i, j in ((0, 1), (1, 2), (2, 0)):
         va, vb = (a, b, c)[i], (a, b, c)[j]
         e = vb - va
@@ -438,7 +438,8 @@ def bake(model, mesh: trimesh.Trimesh, opts: BakeOptions, progress: bool = True,
     ratio = tex // spec
     vmap, faces, uvs = unwrap(mesh.vertices, mesh.faces, vnormals.numpy(), spec, opts.padding)
     tick("unwrap")
-    surf = _Surface(verts[vmap], vnormals[vmap], torch.as_tensor(faces))
+    vmap_t = torch.as_tensor(vmap)
+    surf = _Surface(verts[vmap_t], vnormals[vmap_t], torch.as_tensor(faces))
     tex_s = rasterize_uv(uvs, faces, spec)
     tex_d = rasterize_uv(uvs, faces, tex) if ratio > 1 else tex_s
     tick("rasterize")

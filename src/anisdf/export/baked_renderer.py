@@ -106,7 +106,7 @@ def read_glb(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
     if not path.is_file():
         raise AnisdfError(f"{path}: missing")
     try:
-        g = GLTF2().load_binary(str(path))
+        g = GLTF2.load_binary(str(path))
         blob = g.binary_blob()
         prim = g.meshes[0].primitives[0]
 

@@ -7,8 +7,8 @@ The baked colour of a surface point seen along the unit view direction ``d`` is
 with ``D`` the diffuse colour (RGB), ``r`` the view direction reflected about the shading normal ``n``, and per lobe
 an axis ``mu_k`` (unit), a sharpness ``lambda_k > 0`` and an RGB amplitude ``a_k >= 0`` (BakedSDF's per-vertex model,
 here per texel). :func:`fit_lobes` fits ``D`` and the ``K`` lobes of a batch of texels, jointly, to colours sampled
-over many reflected directions, by Adam on the weighted squared error with the parameters held in their ranges
-after each step. ``K = 0`` leaves the weighted mean colour: the best view-independent colour.
+over many reflected directions (weighted least squares: matching pursuit, backfitting, a few Adam steps, a last
+linear solve). ``K = 0`` leaves the weighted mean colour: the best view-independent colour.
 """
 
 from __future__ import annotations
@@ -186,7 +186,8 @@ def _polish(r: Tensor, target: Tensor, w: Tensor, axis: Tensor, lam: Tensor, amp
         mu = p_axis / p_axis.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         lam2 = p_log.exp()
         d2, a2 = _solve_linear(r, target, w, mu, lam2)
-        better = _weighted_error(r, target, w, d2, mu, lam2, a2) < _weighted_error(r, target, w, diffuse, axis, lam, amp)
+        before = _weighted_error(r, target, w, diffuse, axis, lam, amp)
+        better = _weighted_error(r, target, w, d2, mu, lam2, a2) < before
         pick = lambda new, old: torch.where(better.view(-1, *([1] * (new.dim() - 1))), new, old)  # noqa: E731
         return pick(mu, axis), pick(lam2, lam), pick(a2, amp), pick(d2, diffuse)
 

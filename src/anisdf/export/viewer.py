@@ -14,7 +14,7 @@ PLACEHOLDER = "__ANISDF_DATA__"
 def page_html(manifest: dict[str, Any], glb: bytes, lobe_pngs: list[bytes], rgb_pngs: list[bytes]) -> str:
     """index.html showing ``glb`` (mesh and diffuse texture) with the lobe textures, as described by ``manifest``
     (export.json's content: lobes, sharpness_range, up, camera)."""
-    template = resources.files("anisdf.export").joinpath("web", "index.html").read_text(encoding="utf-8")
+    template = (resources.files("anisdf.export") / "web" / "index.html").read_text(encoding="utf-8")
     if template.count(PLACEHOLDER) != 1:
         raise RuntimeError("the viewer template must hold the data placeholder exactly once")
 
