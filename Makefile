@@ -12,7 +12,7 @@ $(BIN)/python:
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q "$(TORCH)"
-	$(BIN)/pip install -q -e ".[dev,video,colmap,cluster]"
+	$(BIN)/pip install -q -e ".[dev,video,colmap,cluster,export]"
 	touch $@
 
 demo: $(VENV)/.installed

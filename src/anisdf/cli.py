@@ -61,6 +61,25 @@ def float_at_least(low: float, strict: bool = False) -> Callable[[str], float]:
     return parse
 
 
+def count_at_least(low: int) -> Callable[[str], int]:
+    """An argparse ``type=``: a count >= ``low``, written as digits or with a k / M suffix (``300k``, ``1.5M``)."""
+
+    def parse(text: str) -> int:
+        t = text.strip()
+        scale = {"k": 1_000, "m": 1_000_000}.get(t[-1:].lower(), 1)
+        try:
+            number = float(t[:-1] if scale > 1 else t)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a count >= {low} such as 300000 or 300k, not {text!r}") from None
+        value = number * scale
+        if not math.isfinite(value) or value != int(value) or value < low:
+            raise argparse.ArgumentTypeError(f"must be a whole count >= {low} such as 300000 or 300k, not {text!r}")
+        return int(value)
+
+    parse.__name__ = f"count >= {low}"
+    return parse
+
+
 def out_folder(text: str) -> str:
     """An argparse ``type=`` for ``--out``: a folder that may not exist yet, but not an existing file."""
     path = Path(text)
@@ -154,8 +173,23 @@ def cmd_eval(args: argparse.Namespace) -> int:
                        chamfer_points=args.chamfer_points, mesh_resolution=args.mesh_resolution,
                        remove_floaters=args.remove_floaters, remove_inner=args.remove_inner,
                        re_extract=args.re_extract, eval_downscale=args.eval_downscale,
-                       normal_mask=args.normal_mask, chamfer_seed=args.chamfer_seed)
+                       normal_mask=args.normal_mask, chamfer_seed=args.chamfer_seed,
+                       baked=Path(args.baked) if args.baked else None)
     print(json.dumps(metrics, indent=2))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from anisdf.systems.commands import export
+
+    manifest = export(Path(args.run), Path(args.out), faces=args.faces, texture=args.texture,
+                      specular_texture=args.specular_texture, lobes=args.lobes, directions=args.directions,
+                      resolution=args.resolution, supersample=args.supersample, device=args.device,
+                      progress=not args.no_progress)
+    summary = {k: manifest[k] for k in ("faces", "vertices", "texture", "specular_texture", "lobes", "files",
+                                        "total_bytes", "seconds")}
+    print(json.dumps(summary, indent=2))
+    print(Path(args.out) / "index.html")
     return 0
 
 
@@ -336,8 +370,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop enclosed inner shells when eval extracts the mesh (default: kept)" + mesh_note)
     s.add_argument("--re-extract", action="store_true",
                    help="extract a new RUN/mesh.ply (and mesh.json) even when extract-mesh wrote one")
+    s.add_argument("--baked", default=None, metavar="DIR",
+                   help="also score the asset anisdf export wrote to DIR, rendered as its viewer page draws it "
+                        "(baked_psnr, baked_ssim)")
     s.add_argument("--device", default=None)
     s.set_defaults(fn=cmd_eval)
+
+    s = sub.add_parser("export", help="bake a run into a real-time asset: model.glb, specular_*.png, index.html")
+    s.add_argument("run")
+    s.add_argument("--out", required=True, type=out_folder, help="folder of the asset")
+    s.add_argument("--faces", type=count_at_least(4), default=200_000,
+                   help="triangle budget of the decimated mesh, e.g. 300k (default 200k)")
+    s.add_argument("--texture", type=int_at_least(16), default=1024, help="diffuse texture size in texels (1024)")
+    s.add_argument("--specular-texture", type=int_at_least(0), default=0,
+                   help="lobe texture size in texels; 0: half of --texture")
+    s.add_argument("--lobes", type=int_at_least(0), default=3,
+                   help="spherical Gaussian lobes per texel (0: diffuse only; at most 8)")
+    s.add_argument("--directions", type=int_at_least(4), default=64,
+                   help="reflected directions each texel's lobes are fitted to")
+    s.add_argument("--resolution", type=int_at_least(16), default=512, help="marching cubes resolution")
+    s.add_argument("--supersample", type=int_at_least(1), default=2,
+                   help="the page's default antialiasing: s x s samples per pixel (1-4; eval --baked uses it too)")
+    s.add_argument("--device", default=None)
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(fn=cmd_export)
 
     s = sub.add_parser("chamfer", help="Chamfer distance between two meshes (last line)")
     s.add_argument("a")

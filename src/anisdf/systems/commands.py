@@ -307,6 +307,33 @@ NORMAL_MASKS = ("refnerf", "alpha")
 alpha = ground-truth alpha alone (holes in the render count in full)."""
 
 
+def _baked_for_eval(folder: Path, step: int):
+    """The baked asset in ``folder``, checked to come from the checkpoint being evaluated."""
+    from anisdf.export.baked_renderer import BakedAsset
+
+    asset = BakedAsset.load(folder)
+    if asset.manifest.get("step") != step:
+        raise AnisdfError(f"--baked {folder} was exported at step {asset.manifest.get('step')} but the checkpoint is "
+                          f"at step {step}; run anisdf export again")
+    return asset
+
+
+def _dataset_camera(scene, i: int, ck: dict[str, Any]):
+    """Camera ``i`` of ``scene`` in the dataset's frame (where baked assets live), as the reference renderer takes
+    it."""
+    from anisdf.export.baked_renderer import PinholeCamera
+
+    T = np.asarray(ck["to_world"], dtype=np.float64)
+    cams = scene.cameras
+    c2w = np.eye(4)
+    c2w[:3, :4] = cams.c2w[i].double().cpu().numpy()
+    c2w = T @ c2w
+    c2w[:3, :3] /= np.cbrt(np.linalg.det(T[:3, :3]))
+    dist = None if cams.distortion is None else cams.distortion[i].double().cpu().numpy()
+    return PinholeCamera(c2w, float(cams.fx[i]), float(cams.fy[i]), float(cams.cx[i]), float(cams.cy[i]),
+                         cams.width, cams.height, dist)
+
+
 def _view_selection(scene, split: str) -> str:
     """How the dataset's parser chose the views of ``split`` (for the protocol record)."""
     if split == "test" and scene.format == "nerf-synthetic" and (scene.root / "transforms_test.json").is_file():
@@ -322,7 +349,7 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
              device: str | None = None, chamfer_points: int = 1_000_000, mesh_resolution: int | None = None,
              remove_floaters: bool | None = None, remove_inner: bool | None = None, re_extract: bool = False,
              eval_downscale: float = 1.0, normal_mask: str = "refnerf", chamfer_seed: int = 0,
-             progress: bool = True) -> dict[str, Any]:
+             baked: Path | None = None, progress: bool = True) -> dict[str, Any]:
     """PSNR / SSIM (and normal MAE where the dataset has normal maps) on a split, Chamfer against ``gt_mesh``;
     writes RUN/eval.json (with a "protocol" object recording every choice), RUN/eval/ images and a report
     (protocols: docs/evaluation.md).
@@ -333,6 +360,8 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     defaults: ``mesh_resolution`` 512, not cleaned) only when there is none, or with ``re_extract``.
     ``mesh_resolution`` / ``remove_floaters`` / ``remove_inner`` left at None mean "as the existing mesh, else the
     defaults"; given, they must match the existing mesh (else pass ``re_extract``).
+    ``baked``: a folder ``anisdf export`` wrote from this run; its asset is rendered by the reference renderer (what
+    the viewer page draws) from the same cameras and scored too (``baked_psnr``, ``baked_ssim``).
     """
     from tqdm import tqdm
 
@@ -360,7 +389,11 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     cfg, model, ck = load_run(run, dev)
     step = int(ck["state"]["step"])
     mesh_info = _mesh_for_eval(run, step, requested, re_extract) if gt_mesh is not None else None
+    asset = _baked_for_eval(baked, step) if baked is not None else None
     scene = _scene_for_run(run, cfg, ck, downscale=eval_downscale, split=split)
+    if asset is not None and eval_background(scene) != "white":
+        raise AnisdfError(f"--baked: {scene.root} has photos without alpha or masks; a baked asset has no background "
+                          "to score against them")
     data = RayDataset(scene, split, device=dev, background=eval_background(scene))
     ids = scene.splits[split]
     n = len(data) if max_views <= 0 else min(max_views, len(data))
@@ -380,6 +413,14 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
         pred = np.clip(res["maps"]["rgb"], 0.0, 1.0)
         row: dict[str, Any] = {"view": i, "image": scene.image_paths[ids[i]].name,
                                "psnr": psnr(pred, res["gt"]), "ssim": ssim(pred, res["gt"])}
+        if asset is not None:
+            from anisdf.export.baked_renderer import render as render_baked
+
+            img, _ = render_baked(asset, _dataset_camera(scene, ids[i], ck),
+                                  supersample=int(asset.manifest.get("supersample", 1)))
+            res["baked"], res["baked_psnr"] = img, psnr(img, res["gt"])
+            row.update(baked_psnr=res["baked_psnr"], baked_ssim=ssim(img, res["gt"]),
+                       baked_vs_neural_psnr=psnr(img, pred))
         ref = scene.normals.get(ids[i])
         if ref is not None:
             ref_np = ref.cpu().numpy() if isinstance(ref, torch.Tensor) else np.asarray(ref)
@@ -409,6 +450,9 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     maes = [r["normal_mae_deg"] for r in per_view if "normal_mae_deg" in r]
     if maes:
         metrics["normal_mae_deg"] = float(np.mean(maes))
+    if asset is not None:
+        for key in ("baked_psnr", "baked_ssim", "baked_vs_neural_psnr"):
+            metrics[key] = float(np.mean([r[key] for r in per_view]))
     background = eval_background(scene)
     protocol: dict[str, Any] = {
         "split": split, "views": n, "view_selection": _view_selection(scene, split), "held_out": held_out,
@@ -419,8 +463,18 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
         "psnr": "mean over views of -10 log10(MSE), float renders in [0, 1] against 8-bit ground truth",
         "ssim": "skimage structural_similarity: gaussian_weights, sigma 1.5, population covariance, data_range 1, "
                 "mean over channels; mean over views",
-        "normal_mae": None, "mesh": None, "chamfer": None,
+        "normal_mae": None, "mesh": None, "chamfer": None, "baked": None,
     }
+    if asset is not None:
+        man = asset.manifest
+        protocol["baked"] = {
+            "dir": str(baked), "faces": man.get("faces"), "texture": man.get("texture"),
+            "specular_texture": man.get("specular_texture"), "lobes": man.get("lobes"),
+            "supersample": man.get("supersample", 1),
+            "renderer": "anisdf.export.baked_renderer as the viewer page draws: supersample x supersample rays per "
+                        "pixel through the centres of a finer pixel grid, averaged; the same ground truth and "
+                        "background as the neural render",
+        }
     if maes:
         protocol["normal_mae"] = {
             "views": len(maes), "reference": sorted(normal_names), "space": "world, (n + 1) / 2 in RGB",
@@ -455,3 +509,82 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
     (run / "eval.json").write_text(json.dumps({**metrics, "protocol": protocol, "per_view": per_view}, indent=2))
     write_report(run, metrics, per_view, images, protocol=protocol)
     return {**metrics, "protocol": protocol}
+
+
+def _export_camera(run: Path, cfg, ck: dict[str, Any]) -> tuple[dict[str, Any] | None, list[float] | None]:
+    """The page's first camera (the first test view, dataset frame) and the scene's up direction (the mean of the
+    test cameras' up axes), or (None, None) when the dataset is not at hand."""
+    try:
+        scene = _scene_for_run(run, cfg, ck, downscale=1.0, split="test")
+    except AnisdfError as e:
+        log.warning("export: %s; the page starts from a default view", e)
+        return None, None
+    split = scene.splits.get("test") or scene.splits.get("train") or [0]
+    T = np.asarray(ck["to_world"], dtype=np.float64)
+    up = -scene.cameras.c2w[split, :, 1].double().mean(0).numpy()  # OpenCV y points down
+    up = (T[:3, :3] @ up) / np.linalg.norm(T[:3, :3] @ up)
+    cam = _dataset_camera(scene, split[0], ck).to_json()
+    return cam, up.tolist()
+
+
+def export(run: Path, out: Path, faces: int = 200_000, texture: int = 1024, specular_texture: int = 0,
+           lobes: int = 3, directions: int = 64, resolution: int = 512, supersample: int = 2,
+           device: str | None = None, progress: bool = True) -> dict[str, Any]:
+    """Bake RUN into a real-time asset in OUT (:mod:`anisdf.export.bake`): model.glb, specular_*.png, index.html and
+    export.json (settings, file sizes, timings). Returns export.json's content."""
+    import time
+
+    from anisdf import __version__
+    from anisdf.export import baked_format as fmt
+    from anisdf.export.atomic import write_text_atomic
+    from anisdf.export.bake import BakeOptions, bake, write_asset
+    from anisdf.export.mesh import extract_mesh as mc
+    from anisdf.export.sg_fit import SHARPNESS_RANGE
+    from anisdf.systems.trainer import load_run, pick_device
+
+    if out.exists() and not out.is_dir():
+        raise AnisdfError(f"--out {out} is an existing file, not a folder")
+    if out.resolve() == run.resolve():
+        raise AnisdfError("--out must not be the run folder itself")
+    opts = BakeOptions(faces=faces, texture=texture, specular_texture=specular_texture, lobes=lobes,
+                       directions=directions, resolution=resolution)
+    opts.validate()
+    if not 1 <= supersample <= 4:
+        raise AnisdfError(f"--supersample must be between 1 and 4, got {supersample}")
+    dev = pick_device(device or "auto")
+    timings: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def tick(name: str) -> None:
+        now = time.perf_counter()
+        timings[name] = round(now - clock[0], 2)
+        clock[0] = now
+
+    cfg, model, ck = load_run(run, dev)
+    if cfg.appearance.kind != "blend":
+        log.info("export: appearance.kind=%s; the lobes are fitted to its colour all the same", cfg.appearance.kind)
+    camera, up = _export_camera(run, cfg, ck)
+    tick("load")
+    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress)
+    tick("marching_cubes")
+    baked = bake(model, mesh, opts, progress=progress, timer=tick)
+    manifest: dict[str, Any] = {
+        "format": fmt.FORMAT, "version": fmt.VERSION, "anisdf": __version__, "run": str(run.resolve()),
+        "step": int(ck["state"]["step"]), "frame": "dataset",
+        "faces": len(baked.faces), "vertices": len(baked.vertices), "marching_cubes_resolution": resolution,
+        "faces_requested": faces, "texture": opts.texture, "specular_texture": opts.spec_size,
+        "lobes": opts.lobes, "directions": opts.directions, "diffuse_directions": opts.diffuse_directions,
+        "fit_iters": opts.fit_iters, "sharpness_range": list(SHARPNESS_RANGE), "supersample": supersample,
+        "diffuse": "view-independent part of the blended colour w c_view + (1 - w) c_ref: the per-texel fit's "
+                   "constant term (hemisphere mean with K = 0)",
+        "up": up, "camera": camera, "stats": baked.stats,
+    }
+    sizes = write_asset(out, baked, np.asarray(ck["to_world"]), manifest)
+    tick("write")
+    manifest.update(files=sizes, total_bytes=int(sum(sizes.values())), timings=timings,
+                    seconds=round(sum(timings.values()), 2))
+    write_text_atomic(out / fmt.MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    log.info("export: %d faces, %d px diffuse, %d px lobes x %d -> %s (%.1f MB: %s) in %.0f s", len(baked.faces),
+             opts.texture, opts.spec_size, opts.lobes, out, manifest["total_bytes"] / 1e6,
+             ", ".join(f"{k} {v / 1e6:.2f} MB" for k, v in sizes.items()), manifest["seconds"])
+    return manifest

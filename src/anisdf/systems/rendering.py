@@ -58,6 +58,9 @@ def panel(res: dict) -> np.ndarray:
     fg = m["opacity"][..., 0] > 0.5
     imgs = [to_uint8(res["gt"]), to_uint8(m["rgb"]), normal_to_image(m["normal"] * fg[..., None])]
     labels = ["ground truth", f"render {res['psnr']:.2f} dB", "normal"]
+    if "baked" in res:  # eval --baked: the baked asset as the viewer page draws it
+        imgs.insert(2, to_uint8(res["baked"]))
+        labels.insert(2, f"baked {res['baked_psnr']:.2f} dB")
     imgs.append(depth_to_image(m["depth"][..., 0], mask=fg))
     labels.append("depth")
     if "c_view" in m and "c_ref" in m:
