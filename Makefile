@@ -12,7 +12,7 @@ $(BIN)/python:
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q "$(TORCH)"
-	$(BIN)/pip install -q -e ".[dev,video,colmap]"
+	$(BIN)/pip install -q -e ".[dev,video,colmap,viewer]"
 	touch $@
 
 demo: $(VENV)/.installed

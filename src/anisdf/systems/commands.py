@@ -74,7 +74,9 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
 
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
           max_steps: int | None = None, max_minutes: float | None = None, device: str | None = None,
-          resume: bool = False, progress: bool = True) -> dict[str, Any]:
+          resume: bool = False, progress: bool = True, viewer_port: int | None = None,
+          viewer_host: str = "127.0.0.1") -> dict[str, Any]:
+    """Train a run; with ``viewer_port`` also serve it live in the browser (viewer/) between steps."""
     from anisdf.data.dataparsers import load_scene
     from anisdf.systems.checkpoint import load_checkpoint
     from anisdf.systems.trainer import Trainer, pick_device
@@ -103,7 +105,18 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
     if ck is not None:
         trainer.load_state_dict(ck)
         log.info("resuming %s at step %d", out, trainer.state.step)
-    return trainer.fit()
+    if viewer_port is None:
+        return trainer.fit()
+    from anisdf.viewer import Viewer
+
+    viewer = Viewer(trainer.model, scene, port=viewer_port, host=viewer_host, live=True,
+                    title=f"anisdf · {out.name} (training)")
+    trainer.step_hooks.append(viewer.on_step)
+    print(viewer.announce(), flush=True)
+    try:
+        return trainer.fit()
+    finally:
+        viewer.close()
 
 
 MESH_SIDECAR = "mesh.json"
@@ -189,8 +202,8 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     from tqdm import tqdm
 
     from anisdf.data.rays import RayDataset, eval_background
-    from anisdf.export.visualize import depth_to_image, normal_to_image, save_image, scalar_to_image, to_uint8
-    from anisdf.systems.rendering import render_view
+    from anisdf.export.visualize import save_image
+    from anisdf.systems.rendering import MAP_NAMES, map_to_image, render_view
     from anisdf.systems.trainer import load_run, pick_device
 
     dev = pick_device(device or "auto")
@@ -203,17 +216,10 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     out_dir = run / "renders" / split
     for i in tqdm(range(n), desc=f"render {split}", unit="view"):
         res = render_view(model, data, i, scene, cfg.renderer.eval_chunk_rays)
-        m = res["maps"]
-        fg = m["opacity"][..., 0] > 0.5
-        save_image(out_dir / f"{i:03d}_rgb.png", to_uint8(m["rgb"]))
-        save_image(out_dir / f"{i:03d}_normal.png", normal_to_image(m["normal"] * fg[..., None]))
-        save_image(out_dir / f"{i:03d}_depth.png", depth_to_image(m["depth"][..., 0], mask=fg))
-        save_image(out_dir / f"{i:03d}_opacity.png", scalar_to_image(np.clip(m["opacity"][..., 0], 0, 1)))
-        for key in ("c_view", "c_ref"):
-            if key in m:
-                save_image(out_dir / f"{i:03d}_{key}.png", to_uint8(m[key]))
-        if "weight" in m:
-            save_image(out_dir / f"{i:03d}_weight.png", scalar_to_image(np.clip(m["weight"][..., 0], 0, 1)))
+        for name in MAP_NAMES:
+            key = "weight" if name == "w" else name
+            if key in res["maps"]:
+                save_image(out_dir / f"{i:03d}_{key}.png", map_to_image(res["maps"], name))
     if video:
         render_orbit(model, scene, cfg, run / "renders" / "orbit.mp4", n_video_frames, downscale, dev)
     return out_dir
