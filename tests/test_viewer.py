@@ -24,14 +24,15 @@ from anisdf.viewer.run import open_run, serve  # noqa: E402
 from anisdf.viewer.server import Viewer, check_listen  # noqa: E402
 
 CHROMIUM = os.environ.get("ANISDF_CHROMIUM", "/usr/bin/chromium")
+FAST = [*TINY, "renderer.march_steps=64", "renderer.init_rays=64", "renderer.min_rays=32"]
 
 
 @pytest.fixture(scope="module")
 def viewed_run(toy_scene, tmp_path_factory) -> Path:
     """A tiny trained run with a mesh and an evaluation, as a user has them after training."""
     out = tmp_path_factory.mktemp("view") / "run"
-    assert main(["train", str(toy_scene), "--out", str(out), "--preset", "cpu-quick", "--max-steps", "40",
-                 "--no-progress", *TINY]) == 0
+    assert main(["train", str(toy_scene), "--out", str(out), "--preset", "cpu-quick", "--max-steps", "12",
+                 "--no-progress", *FAST]) == 0
     assert main(["extract-mesh", str(out), "--resolution", "32"]) == 0
     assert main(["eval", str(out), "--max-views", "1"]) == 0
     return out
@@ -116,7 +117,7 @@ def test_the_step_hook_changes_nothing_and_costs_nothing_without_a_browser(toy_s
     from anisdf.systems.trainer import Trainer
 
     def run(name: str, with_viewer: bool) -> tuple[dict, int, int]:
-        cfg = load_config("cpu-quick", [*TINY, "train.max_steps=6"])
+        cfg = load_config("cpu-quick", [*FAST, "train.max_steps=4"])
         scene = load_scene(toy_scene, downscale=1)
         tr = Trainer(cfg, scene, tmp_path / name, torch.device("cpu"), progress=False)
         viewer = None
@@ -132,7 +133,7 @@ def test_the_step_hook_changes_nothing_and_costs_nothing_without_a_browser(toy_s
 
     plain, _, _ = run("plain", False)
     viewed, version, frames = run("viewed", True)
-    assert version == 6 and frames == 0  # called after every step, rendered nothing
+    assert version == 4 and frames == 0  # called after every step, rendered nothing
     for k, v in plain.items():
         assert torch.equal(v, viewed[k]), k
 
@@ -142,7 +143,7 @@ def test_the_live_viewer_renders_between_steps_and_ctrl_c_keeps_a_resumable_chec
     from anisdf.data.dataparsers import load_scene
     from anisdf.systems.trainer import Trainer
 
-    cfg = load_config("cpu-quick", [*TINY, "train.max_steps=50"])
+    cfg = load_config("cpu-quick", [*FAST, "train.max_steps=50"])
     scene = load_scene(toy_scene, downscale=1)
     tr = Trainer(cfg, scene, tmp_path / "run", torch.device("cpu"), progress=False)
     viewer = Viewer(tr.model, scene, port=_free_port(), live=True, refresh_seconds=0.0, refresh_share=1.0,
@@ -153,20 +154,20 @@ def test_the_live_viewer_renders_between_steps_and_ctrl_c_keeps_a_resumable_chec
     viewer._connect(client)
     seen: list[int] = []
 
-    def interrupt_at_step_5(trainer: Trainer, stats: dict) -> None:
+    def interrupt_at_step_4(trainer: Trainer, stats: dict) -> None:
         seen.append(len(client.pictures))
-        if trainer.state.step == 5:
+        if trainer.state.step == 4:
             raise KeyboardInterrupt  # Ctrl-C while the viewer is serving
 
-    tr.step_hooks += [viewer.on_step, interrupt_at_step_5]
+    tr.step_hooks += [viewer.on_step, interrupt_at_step_4]
     try:
         summary = tr.fit()
     finally:
         viewer.close()
-    assert summary["status"] == "interrupted" and summary["step"] == 5
+    assert summary["status"] == "interrupted" and summary["step"] == 4
     # pictures between steps: a quick one, a sharper one, then the resting view again as the model learns
-    assert seen == [1, 2, 3, 4, 5]
-    assert main(["train", str(toy_scene), "--out", str(tmp_path / "run"), "--resume", "--max-steps", "6",
+    assert seen == [1, 2, 3, 4]
+    assert main(["train", str(toy_scene), "--out", str(tmp_path / "run"), "--resume", "--max-steps", "5",
                  "--no-progress"]) == 0
 
 
@@ -251,7 +252,7 @@ def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_pa
             time.sleep(1.0)
             moved = _shot(page)
             assert np.abs(moved - first).mean() > 3, "the picture did not change when the camera moved"
-            page.get_by_label("Map").click()
+            page.get_by_label("Map", exact=True).click()
             page.get_by_role("option", name="normal", exact=True).click()
             _wait(lambda: viewer.gui_map.value == "normal")
             frames = viewer.stats.frames
