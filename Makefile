@@ -12,13 +12,18 @@ $(BIN)/python:
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q "$(TORCH)"
-	$(BIN)/pip install -q -e ".[dev,video,colmap,cluster,export]"
+	$(BIN)/pip install -q -e ".[dev,video,colmap,viewer,export]"
+	touch $@
+
+# Ray (anisdf batch / reproduce --ray) only for the tests, which run a local Ray; users add it with anisdf[cluster]
+$(VENV)/.cluster: $(VENV)/.installed
+	$(BIN)/pip install -q -e ".[cluster]"
 	touch $@
 
 demo: $(VENV)/.installed
 	$(BIN)/anisdf demo
 
-test: $(VENV)/.installed
+test: $(VENV)/.installed $(VENV)/.cluster
 	$(BIN)/ruff check src tests benchmarks
 	$(BIN)/python -m pytest -rs tests
 

@@ -88,6 +88,26 @@ def out_folder(text: str) -> str:
     return text
 
 
+def port_number(text: str) -> int:
+    """An argparse ``type=`` for ``--port``: 1 to 65535."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a port number from 1 to 65535, not {text!r}")
+    return value
+
+
+port_number.__name__ = "port number"
+
+
+def _add_viewer_args(p: argparse.ArgumentParser, default_port: int | None) -> None:
+    p.add_argument("--port", type=port_number, default=default_port,
+                   help="viewer port (default 7007; when taken, the next free one, said at start)")
+    p.add_argument("--host", default="127.0.0.1", help="viewer address to listen on (0.0.0.0: every interface)")
+
+
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     from anisdf.config import preset_names
 
@@ -134,6 +154,8 @@ def _torchrun(nproc: int, argv: list[str]) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from anisdf.systems.commands import train
 
+    if not args.viewer and (args.port is not None or args.host != "127.0.0.1"):
+        raise AnisdfError("--port and --host are the viewer's: add --viewer")
     if args.nproc > 1:
         return _torchrun(args.nproc, args.argv)
     rank = int(os.environ.get("RANK", "0"))
@@ -141,9 +163,17 @@ def cmd_train(args: argparse.Namespace) -> int:
         logging.getLogger("anisdf").setLevel(logging.WARNING)
     summary = train(Path(args.data), Path(args.out), preset=args.preset, overrides=args.overrides,
                     max_steps=args.max_steps, max_minutes=args.max_minutes, device=args.device,
-                    resume=args.resume, progress=not args.no_progress)
+                    resume=args.resume, progress=not args.no_progress,
+                    viewer_port=(args.port or 7007) if args.viewer else None, viewer_host=args.host)
     if rank == 0:
         print(json.dumps(summary, indent=2))
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from anisdf.viewer.run import view
+
+    view(Path(args.run), port=args.port, host=args.host, device=args.device, max_resolution=args.max_resolution)
     return 0
 
 
@@ -325,8 +355,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--nproc", type=int_at_least(1), default=1,
                    help="data-parallel ranks on this machine (torchrun --standalone; one per GPU, gloo on CPUs); "
                         "for several machines run torchrun yourself (docs/distributed.md)")
+    s.add_argument("--viewer", action="store_true",
+                   help="watch it learn in the browser (viser; rendering between steps, not counted as training time)")
+    _add_viewer_args(s, default_port=None)
     _add_config_args(s)
     s.set_defaults(fn=cmd_train)
+
+    s = sub.add_parser("view", help="interactive web viewer of a run (finished or training): maps, cameras, mesh")
+    s.add_argument("run")
+    _add_viewer_args(s, default_port=7007)
+    s.add_argument("--max-resolution", type=int_at_least(64), default=512,
+                   help="long side in pixels of a resting view (a slider in the page changes it)")
+    s.add_argument("--device", default=None)
+    s.set_defaults(fn=cmd_view)
 
     s = sub.add_parser("extract-mesh", help="marching cubes on the SDF -> RUN/mesh.<ext>")
     s.add_argument("run")

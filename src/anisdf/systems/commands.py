@@ -110,9 +110,11 @@ def auto_preset(data: Path) -> tuple[str, list[str]]:
 
 def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
           max_steps: int | None = None, max_minutes: float | None = None, device: str | None = None,
-          resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Train a run (``resume``: continue it). Under torchrun every rank calls this and joins the job
-    (systems/distributed.py); the summary is the same on every rank."""
+          resume: bool = False, progress: bool = True, viewer_port: int | None = None,
+          viewer_host: str = "127.0.0.1") -> dict[str, Any]:
+    """Train a run (``resume``: continue it); with ``viewer_port`` also serve it live in the browser (viewer/) between
+    steps (rank 0 only). Under torchrun every rank calls this and joins the job (systems/distributed.py); the summary
+    is the same on every rank."""
     from anisdf.data.dataparsers import load_scene
     from anisdf.systems import distributed
     from anisdf.systems.checkpoint import load_checkpoint
@@ -139,6 +141,7 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
         cfg.train.max_minutes = max_minutes
     ctx = distributed.init_from_env(device or cfg.train.device)
     dev = ctx.device if ctx is not None else pick_device(device or cfg.train.device)
+    viewer = None
     try:
         scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
                            images_dir=cfg.data.images_dir)
@@ -150,8 +153,17 @@ def train(data: Path, out: Path, preset: str | None = None, overrides: list[str]
             trainer.load_state_dict(ck)
             if trainer.is_main:
                 log.info("resuming %s at step %d", out, trainer.state.step)
+        if viewer_port is not None and trainer.is_main:
+            from anisdf.viewer import Viewer
+
+            viewer = Viewer(trainer.model, scene, port=viewer_port, host=viewer_host, live=True,
+                            title=f"anisdf · {out.name} (training)")
+            trainer.step_hooks.append(viewer.on_step)
+            print(viewer.announce(), flush=True)
         return trainer.fit()
     finally:
+        if viewer is not None:
+            viewer.close()
         distributed.shutdown(ctx)
 
 
@@ -238,8 +250,8 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     from tqdm import tqdm
 
     from anisdf.data.rays import RayDataset, eval_background
-    from anisdf.export.visualize import depth_to_image, normal_to_image, save_image, scalar_to_image, to_uint8
-    from anisdf.systems.rendering import render_view
+    from anisdf.export.visualize import save_image
+    from anisdf.systems.rendering import MAP_NAMES, map_to_image, render_view
     from anisdf.systems.trainer import load_run, pick_device
 
     dev = pick_device(device or "auto")
@@ -252,17 +264,10 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     out_dir = run / "renders" / split
     for i in tqdm(range(n), desc=f"render {split}", unit="view"):
         res = render_view(model, data, i, scene, cfg.renderer.eval_chunk_rays)
-        m = res["maps"]
-        fg = m["opacity"][..., 0] > 0.5
-        save_image(out_dir / f"{i:03d}_rgb.png", to_uint8(m["rgb"]))
-        save_image(out_dir / f"{i:03d}_normal.png", normal_to_image(m["normal"] * fg[..., None]))
-        save_image(out_dir / f"{i:03d}_depth.png", depth_to_image(m["depth"][..., 0], mask=fg))
-        save_image(out_dir / f"{i:03d}_opacity.png", scalar_to_image(np.clip(m["opacity"][..., 0], 0, 1)))
-        for key in ("c_view", "c_ref"):
-            if key in m:
-                save_image(out_dir / f"{i:03d}_{key}.png", to_uint8(m[key]))
-        if "weight" in m:
-            save_image(out_dir / f"{i:03d}_weight.png", scalar_to_image(np.clip(m["weight"][..., 0], 0, 1)))
+        for name in MAP_NAMES:
+            key = "weight" if name == "w" else name
+            if key in res["maps"]:
+                save_image(out_dir / f"{i:03d}_{key}.png", map_to_image(res["maps"], name))
     if video:
         render_orbit(model, scene, cfg, run / "renders" / "orbit.mp4", n_video_frames, downscale, dev)
     return out_dir

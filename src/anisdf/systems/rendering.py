@@ -35,6 +35,28 @@ def render_rays_to_maps(model: AniSDFModel, origins: torch.Tensor, dirs: torch.T
     return maps
 
 
+MAP_NAMES = ("rgb", "normal", "depth", "c_view", "c_ref", "w", "opacity")
+"""The maps people look at, as :func:`map_to_image` names them (``w`` is the blend weight, key ``weight``)."""
+
+
+def map_to_image(maps: dict[str, np.ndarray], name: str) -> np.ndarray:
+    """One of :data:`MAP_NAMES` of :func:`render_rays_to_maps`'s output as a uint8 RGB picture, as ``anisdf render``
+    writes it: normals and depth outside the object (opacity <= 0.5) white, scalars in viridis. KeyError when the
+    model has no such map (c_view, c_ref and w belong to the blended appearance)."""
+    from anisdf.export.visualize import depth_to_image, normal_to_image, scalar_to_image, to_uint8
+
+    fg = maps["opacity"][..., 0] > 0.5
+    if name in ("rgb", "c_view", "c_ref"):
+        return to_uint8(maps[name])
+    if name == "normal":
+        return normal_to_image(maps["normal"] * fg[..., None])
+    if name == "depth":
+        return depth_to_image(maps["depth"][..., 0], mask=fg)
+    if name in ("w", "opacity"):
+        return scalar_to_image(np.clip(maps["weight" if name == "w" else "opacity"][..., 0], 0, 1))
+    raise KeyError(f"unknown map {name!r}; one of {', '.join(MAP_NAMES)}")
+
+
 def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chunk: int) -> dict:
     """Render view ``i`` of a split on a white background; returns maps, the target and its PSNR."""
     batch, hw = data.image(i)

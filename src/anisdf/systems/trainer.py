@@ -20,6 +20,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,6 +130,8 @@ class Trainer:
         self.clock = time.perf_counter  # the time budget's clock (tests replace it)
         self.ckpt_path = self.out / "checkpoints" / "last.pt"
         self._writer = None
+        self.step_hooks: list[Callable[[Trainer, dict[str, float]], None]] = []
+        """Called after every step with its stats; their time is not training time (the live viewer renders there)."""
 
     # ----------------------------------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
@@ -385,6 +388,10 @@ class Trainer:
                     self.save()
                 if self.is_main and cfg.train.val_every > 0 and step % cfg.train.val_every == 0:
                     self.validate()
+                for hook in self.step_hooks:
+                    t_hook = self.clock()
+                    hook(self, stats)
+                    t_start += self.clock() - t_hook
         except KeyboardInterrupt:
             status = "interrupted"
         finally:

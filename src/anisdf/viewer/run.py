@@ -1,0 +1,148 @@
+"""``anisdf view RUN``: a run folder in the browser, kept up to date while it changes (a run still training, a mesh
+extracted or an evaluation written meanwhile)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from anisdf.errors import AnisdfError
+from anisdf.viewer.server import Viewer, import_viser
+
+log = logging.getLogger("anisdf")
+
+POLL_SECONDS = 2.0
+"""How often the run folder is looked at for a newer checkpoint, mesh or evaluation."""
+
+
+def _mtime(path: Path) -> float | None:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
+def mesh_path(run: Path) -> Path | None:
+    """The mesh ``extract-mesh`` wrote (named in RUN/mesh.json), else RUN/mesh.ply|obj|glb, else None."""
+    try:
+        named = run / str(json.loads((run / "mesh.json").read_text())["mesh"])
+        if named.is_file():
+            return named
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return next((p for p in (run / "mesh.ply", run / "mesh.obj", run / "mesh.glb") if p.is_file()), None)
+
+
+class RunWatcher:
+    """Loads a run's checkpoint, mesh and evaluation into a :class:`Viewer`, again whenever one of them changes."""
+
+    def __init__(self, run: Path, viewer: Viewer, device: Any, to_world: np.ndarray) -> None:
+        self.run, self.viewer, self.device = Path(run), viewer, device
+        self.to_world = np.asarray(to_world, dtype=np.float64)
+        self._stamps: dict[str, Any] = {}
+        self._polled = 0.0
+
+    def _changed(self, name: str, stamp: Any) -> bool:
+        old = self._stamps.get(name, "never")
+        self._stamps[name] = stamp
+        return old != stamp
+
+    def poll(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._polled < POLL_SECONDS:
+            return
+        self._polled = now
+        from anisdf.systems.trainer import load_run
+
+        ckpt = self.run / "checkpoints" / "last.pt"
+        if self._changed("ckpt", _mtime(ckpt)) and not force:  # the first (forced) poll follows open_run's load
+            try:
+                _, model, ck = load_run(self.run, self.device)
+            except AnisdfError as e:  # e.g. caught between a write and its rename on an odd file system
+                log.warning("viewer: %s", e)
+            else:
+                self.viewer.set_model(model)
+                self._set_run_status(ck)
+        mesh = mesh_path(self.run)
+        if self._changed("mesh", (mesh, _mtime(mesh) if mesh else None)):
+            self.viewer.set_mesh(self._load_mesh(mesh) if mesh else None)
+        ev = self.run / "eval.json"
+        if self._changed("eval", _mtime(ev)) and ev.is_file():
+            try:
+                metrics = {k: v for k, v in json.loads(ev.read_text()).items() if k not in ("protocol", "per_view")}
+            except (OSError, ValueError) as e:
+                log.warning("viewer: %s is unreadable (%s)", ev, e)
+            else:
+                self.viewer.set_eval(metrics, sorted((self.run / "eval").glob("*.png")))
+
+    def _set_run_status(self, ck: dict[str, Any]) -> None:
+        status = "?"
+        try:
+            status = json.loads((self.run / "run.json").read_text()).get("status", "?")
+        except (OSError, ValueError):
+            pass
+        self.viewer.set_status(step=int(ck["state"]["step"]), status=f"run {status}")
+
+    def _load_mesh(self, path: Path) -> Any | None:
+        import trimesh
+
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as e:  # noqa: BLE001  (trimesh raises many kinds on a damaged file)
+            log.warning("viewer: cannot read %s (%s)", path, e)
+            return None
+        mesh.apply_transform(np.linalg.inv(self.to_world))  # meshes are written in the dataset's frame
+        return mesh
+
+
+def open_run(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str | None = None,
+             max_resolution: int = 512) -> tuple[Viewer, RunWatcher]:
+    """A viewer of the run folder ``run`` with its training cameras (when the dataset is still there), mesh and
+    evaluation."""
+    import_viser()
+    from anisdf.systems.commands import _scene_for_run
+    from anisdf.systems.trainer import load_run, pick_device
+
+    run = Path(run)
+    if not run.is_dir():
+        raise AnisdfError(f"{run}: no such run folder")
+    dev = pick_device(device or "auto")
+    cfg, model, ck = load_run(run, dev)
+    try:
+        scene = _scene_for_run(run, cfg, ck, split="train")
+    except AnisdfError as e:
+        log.warning("viewer: no training cameras: %s", e)
+        scene = None
+    viewer = Viewer(model, scene, port=port, host=host, title=f"anisdf · {run.name}", max_resolution=max_resolution)
+    watcher = RunWatcher(run, viewer, dev, np.asarray(ck["to_world"]))
+    watcher._set_run_status(ck)
+    watcher.poll(force=True)
+    return viewer, watcher
+
+
+def serve(viewer: Viewer, watcher: RunWatcher | None = None, stop: threading.Event | None = None) -> None:
+    """Render for the browsers until ``stop`` is set or Ctrl-C, then close the server."""
+    try:
+        while stop is None or not stop.is_set():
+            if watcher is not None:
+                watcher.poll()
+            if not viewer.tick():
+                time.sleep(0.01)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+
+
+def view(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str | None = None,
+         max_resolution: int = 512) -> None:
+    """``anisdf view``: serve ``run`` until Ctrl-C."""
+    viewer, watcher = open_run(run, port=port, host=host, device=device, max_resolution=max_resolution)
+    print(viewer.announce() + " (Ctrl-C to stop)", flush=True)
+    serve(viewer, watcher)
