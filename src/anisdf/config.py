@@ -152,7 +152,9 @@ class LossConfig:
     start (Neuralangelo; the release's DTU setting 'with decay')."""
     curvature_fraction: float = 0.25
     """Fraction of the step's samples (at least 1024) on which the curvature term is evaluated: it needs a second
-    SDF query with gradients at perturbed points. Measured full vs subset: benchmarks/RESULTS.md."""
+    SDF query with gradients at perturbed points. Neither the paper nor NOTES.md mentions a subset; on
+    bunny_plastic's 10-minute cpu-quick run 1.0 ran 27% fewer steps and ended worse (41.03 dB, 3.36 deg, Chamfer
+    0.00426 against 41.63, 2.95, 0.00388; benchmarks/RESULTS.md, session 10), so 0.25 stays."""
     orientation: float = 1e-3
     orientation_start: float = -1.0
     """Orientation weight at step 0, ramping linearly to ``orientation`` over ``orientation_ramp_steps``
