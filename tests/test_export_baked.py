@@ -252,6 +252,7 @@ def screenshot_page(page_path: Path, camera: dict, out_png: Path | None = None, 
             page.evaluate("document.getElementById('hud').style.display = 'none'")
             page.wait_for_function(f"window.anisdf.frames >= {start + 5}", timeout=timeout_ms)
             png = page.locator("canvas").screenshot()
+            page.wait_for_function("window.anisdf.fps > 0", timeout=timeout_ms)  # the counter updates every 0.5 s
             fps = float(page.evaluate("window.anisdf.fps"))
             assert not errors, errors
         finally:

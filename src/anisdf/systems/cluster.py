@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import platform
 import socket
 import time
 from collections.abc import Callable
@@ -22,6 +23,8 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from anisdf.errors import AnisdfError
 from anisdf.export.atomic import write_text_atomic
@@ -34,6 +37,23 @@ MAX_RETRIES = 3
 """Times Ray runs a task again after its worker died."""
 LOCAL = "local"
 """``--ray`` without an address: start a Ray instance on this machine (or use the one this process already has)."""
+
+
+
+def machine_info(device: str | None = None) -> dict[str, Any]:
+    """CPU model, GPU name (when CUDA is used), torch version and thread count of this machine."""
+    from anisdf.systems.trainer import pick_device
+
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    dev = pick_device(device or "auto")
+    return {"cpu": cpu, "cpu_threads": torch.get_num_threads(), "device": str(dev),
+            "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None, "torch": torch.__version__}
 
 
 @dataclass
@@ -104,7 +124,6 @@ def attempt(fn: Callable[..., dict[str, Any]], run: Path, kwargs: dict[str, Any]
     info = {"attempt": int(read_attempt(run).get("attempt", 0)) + 1, "host": socket.gethostname(), "pid": os.getpid(),
             "started": datetime.now(UTC).isoformat(timespec="seconds"), "ray": remote}
     if remote:  # where the run went: the worker's GPU, else its CPU model
-        from anisdf.systems.reproduce import machine_info
 
         m = machine_info()
         info["device"] = m["gpu"] or m["cpu"]

@@ -14,7 +14,6 @@ import dataclasses
 import json
 import logging
 import math
-import platform
 import re
 import shlex
 import time
@@ -22,32 +21,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS, PaperTable, find_scenes, get_table
 from anisdf.export.atomic import write_text_atomic
+from anisdf.systems.cluster import machine_info
 
 log = logging.getLogger("anisdf")
 
 CPU_PRESET = "cpu-quick"
 SCALES = ("paper", "cpu")
-
-
-def machine_info(device: str | None = None) -> dict[str, Any]:
-    """CPU model, GPU name (when CUDA is used), torch version and thread count of this machine."""
-    from anisdf.systems.trainer import pick_device
-
-    cpu = platform.processor() or platform.machine()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text(errors="replace").splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    dev = pick_device(device or "auto")
-    return {"cpu": cpu, "cpu_threads": torch.get_num_threads(), "device": str(dev),
-            "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None, "torch": torch.__version__}
 
 
 def _data_overrides(preset: str) -> list[str]:
