@@ -152,6 +152,24 @@ def test_interrupted_run_is_resumed(lego_root, tmp_path, monkeypatch):
     assert json.loads((run / "run.json").read_text())["status"] == "done"
 
 
+def test_max_steps_alone_makes_cpu_runs_step_based(lego_root, tmp_path, monkeypatch):
+    """At cpu scale the 10-minute budget is the default only without --max-steps: a step count is a step count."""
+    seen: list[tuple] = []
+
+    def record(data, run, preset, overrides, max_minutes, max_steps, device, progress):
+        seen.append((max_minutes, max_steps))
+        raise AnisdfError("recorded")
+
+    monkeypatch.setattr("anisdf.systems.cluster.train_or_resume", record)
+    opts = {k: v for k, v in FAST.items() if k not in ("minutes", "max_steps")}
+    cases = (({"max_steps": 1500}, (None, 1500)), ({}, (10.0, None)), ({"minutes": 3.0, "max_steps": 7}, (3.0, 7)),
+             ({"minutes": 0.0}, (None, None)))
+    for kw, want in cases:
+        with pytest.raises(AnisdfError, match="recorded"):
+            reproduce.reproduce("nerf-synthetic", lego_root, tmp_path / f"o{len(seen)}", **opts, **kw)
+        assert seen[-1] == want, kw
+
+
 def test_ablation_on_a_scene_folder_not_in_the_paper(lego_root, tmp_path, capsys):
     out = tmp_path / "abl"
     scene = lego_root / "my_object"

@@ -502,9 +502,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scale", choices=["paper", "cpu"], default="paper",
                    help="paper: the table's preset; cpu: cpu-quick with the table's data settings, --minutes per run")
     s.add_argument("--scenes", default=None, help="comma-separated scene folder names (default: the paper's)")
-    s.add_argument("--minutes", type=float_at_least(0.0), default=None, help="time budget per run (cpu scale: 10)")
+    s.add_argument("--minutes", type=float_at_least(0.0), default=None,
+                   help="time budget per run (0: none; cpu scale: 10 unless --max-steps is given)")
     s.add_argument("--seeds", default=None, help="comma-separated seeds (train.seed), e.g. 0,1 (default 0)")
-    s.add_argument("--max-steps", type=int_at_least(1), default=None, help="steps per run instead of the preset's")
+    s.add_argument("--max-steps", type=int_at_least(1), default=None,
+                   help="steps per run instead of the preset's (step-based: no time budget unless --minutes)")
     s.add_argument("--max-views", type=int_at_least(0), default=0,
                    help="evaluate on at most this many test views (0: all)")
     s.add_argument("--mesh-resolution", type=int_at_least(2), default=512,

@@ -123,8 +123,9 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
               command: str | None = None, progress: bool = True, ray: str | None = None,
               cpus_per_run: int | None = None) -> dict[str, Any]:
     """Train and evaluate every (scene, configuration, seed) of table ``table_name`` found under ``data``; returns
-    the content of OUT/reproduce.json. ``minutes`` is each run's time budget (cpu scale: 10 unless given; paper
-    scale: the preset's step schedule unless given); ``overrides`` and ``max_steps`` apply to every run. ``ray``
+    the content of OUT/reproduce.json. ``minutes`` is each run's time budget (0: none; cpu scale: 10 unless given or
+    ``max_steps`` is, which makes the runs step-based; paper scale: the preset's step schedule unless given);
+    ``overrides`` and ``max_steps`` apply to every run. ``ray``
     (``local``, ``auto`` or an address) runs them on Ray, ``cpus_per_run`` threads each (and CPUs asked of Ray)."""
     table = get_table(table_name)
     if ray is not None:
@@ -136,8 +137,10 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
     seeds = list(seeds) if seeds else [0]
     if len(set(seeds)) != len(seeds):
         raise AnisdfError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
-    if scale == "cpu" and minutes is None:
+    if scale == "cpu" and minutes is None and max_steps is None:
         minutes = 10.0
+    if not minutes:  # 0: no time budget
+        minutes = None
     found = find_scenes(table, data, scenes)
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / "reproduce.json"
@@ -156,7 +159,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
         [table.name, "--data", str(data), "--out", str(out), "--scale", scale])
     result: dict[str, Any] = {
         "table": table.name, "source": table.source, "scale": scale,
-        "preset": table.preset if scale == "paper" else CPU_PRESET, "minutes": minutes,
+        "preset": table.preset if scale == "paper" else CPU_PRESET, "minutes": minutes, "max_steps": max_steps,
         "chamfer_unit": table.chamfer_unit, "command": command, "machine": machine_info(device),
         "rows": list(old_rows), "means": {}}
     plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
@@ -252,7 +255,9 @@ def markdown(table: PaperTable, result: dict[str, Any]) -> str:
              f"Command: `{result['command']}`  ",
              f"Machine: {m['gpu'] or 'no GPU'}; CPU {m['cpu']} ({m['cpu_threads']} threads); torch {m['torch']}  ",
              f"Scale: {result['scale']} (preset {result['preset']}"
-             + (f", {result['minutes']:g} min per run)" if result["minutes"] else ", the preset's step schedule)"),
+             + (f", {result['minutes']:g} min per run" if result["minutes"] else "")
+             + (f", {result['max_steps']} steps per run" if result.get("max_steps") else "")
+             + (")" if result["minutes"] or result.get("max_steps") else ", the preset's step schedule)"),
              ""]
     head = ["scene", "config", "seed", *[f"{names[x]} {w}" for x in shown for w in ("ours", "paper")], "minutes",
             "status"]
