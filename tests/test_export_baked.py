@@ -112,6 +112,71 @@ def _sphere_asset(k: int = 0) -> BakedAsset:
                       lobe, amp, (1.0, 1000.0), {})
 
 
+def test_unwrap_in_pieces_keeps_every_triangle_apart_in_one_atlas():
+    """The mesh is charted in pieces and packed once: every triangle keeps its corners, lies in the atlas, and
+    triangles of different charts do not share a texel (the rasteriser gives each texel one triangle)."""
+    import trimesh
+
+    from anisdf.export.bake import rasterize_uv, unwrap
+
+    mesh = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces: 11 pieces of 500
+    vmap, faces, uvs = unwrap(mesh.vertices, mesh.faces, mesh.vertex_normals, 256, 2, piece_faces=500)
+    assert len(faces) == len(mesh.faces) and uvs.min() >= 0 and uvs.max() <= 1
+    # the same triangles, corner for corner, in the original vertices
+    assert sorted(map(tuple, np.sort(vmap[faces], 1))) == sorted(map(tuple, np.sort(mesh.faces, 1)))
+    tex = rasterize_uv(uvs, faces, 256, ring=0)
+    assert len(tex.index) == len(set(tex.index.tolist()))
+    # a texel of a chart never touches a texel of another chart (two texels apart at least), so bilinear lookups
+    # do not blend charts
+    flat = trimesh.Trimesh(np.c_[uvs, np.zeros(len(uvs))], faces, process=False)  # charts: UV-connected faces
+    chart = trimesh.graph.connected_component_labels(flat.face_adjacency, node_count=len(faces))
+    owner = np.full(256 * 256, -1)
+    owner[tex.index.numpy()] = chart[tex.face.numpy()]
+    img = np.pad(owner.reshape(256, 256), 1, constant_values=-1)
+    centre = img[1:-1, 1:-1]
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        other = img[1 + dy:257 + dy, 1 + dx:257 + dx]
+        assert not ((centre >= 0) & (other >= 0) & (centre != other)).any()
+    assert len(set(chart)) > 11  # charts within pieces, pieces across the atlas
+    used = len(tex.index) / 256**2
+    assert used > 0.3, f"the atlas is {used:.0%} used"
+
+
+def _shader_resolve(fine: np.ndarray, s: int, sigma: float) -> np.ndarray:
+    """The page's resolve pass (index.html RESOLVE_FS), pixel by pixel, in float64."""
+    hs, ws, _ = fine.shape
+    out = np.zeros((hs // s, ws // s, fine.shape[2]))
+    for py in range(hs // s):
+        for px in range(ws // s):
+            if sigma <= 0:
+                out[py, px] = fine[py * s:(py + 1) * s, px * s:(px + 1) * s].mean((0, 1))
+                continue
+            cy, cx, reach = py + 0.5, px + 0.5, 3.0 * sigma
+            ys = range(max(math.ceil((cy - reach) * s - 0.5), 0), min(math.floor((cy + reach) * s - 0.5), hs - 1) + 1)
+            xs = range(max(math.ceil((cx - reach) * s - 0.5), 0), min(math.floor((cx + reach) * s - 0.5), ws - 1) + 1)
+            acc, total = 0.0, 0.0
+            for y in ys:
+                for x in xs:
+                    w = math.exp(-0.5 * (((y + 0.5) / s - cy) ** 2 + ((x + 0.5) / s - cx) ** 2) / sigma**2)
+                    acc, total = acc + w * fine[y, x], total + w
+            out[py, px] = acc / total
+    return out
+
+
+def test_pixel_filter_matches_the_pages_resolve_pass():
+    """The reference renderer's separable resolve is the page's per-pixel loop: box, and Gaussian windows that
+    reach past the image's edges (renormalised there)."""
+    from anisdf.export.baked_renderer import resolve
+
+    fine = np.random.default_rng(0).random((5 * 3, 7 * 3, 4))
+    for s, sigma in ((3, 0.0), (3, 0.6), (2, 0.35), (1, 0.6)):
+        f = fine[:5 * s, :7 * s]
+        got = resolve(torch.from_numpy(f).float(), s, sigma).double().numpy()
+        np.testing.assert_allclose(got, _shader_resolve(f, s, sigma), atol=1e-5)
+    flat = resolve(torch.full((12, 12, 3), 0.25), 2, 0.6)
+    assert torch.allclose(flat, torch.full((6, 6, 3), 0.25))  # weights sum to one everywhere, edges included
+
+
 def test_reference_renderer_casts_and_shades_a_sphere():
     from anisdf.data.testscenes import look_at
 

@@ -214,7 +214,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     manifest = export(Path(args.run), Path(args.out), faces=args.faces, texture=args.texture,
                       specular_texture=args.specular_texture, lobes=args.lobes, directions=args.directions,
-                      resolution=args.resolution, supersample=args.supersample, device=args.device,
+                      resolution=args.resolution, supersample=args.supersample,
+                      pixel_filter=args.pixel_filter, device=args.device,
                       progress=not args.no_progress)
     summary = {k: manifest[k] for k in ("faces", "vertices", "texture", "specular_texture", "lobes", "files",
                                         "total_bytes", "seconds")}
@@ -432,6 +433,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", type=int_at_least(16), default=512, help="marching cubes resolution")
     s.add_argument("--supersample", type=int_at_least(1), default=2,
                    help="the page's default antialiasing: s x s samples per pixel (1-4; eval --baked uses it too)")
+    s.add_argument("--pixel-filter", type=float_at_least(0.0), default=0.6,
+                   help="sigma in pixels of the Gaussian that filters those samples into pixels (0: each pixel's own "
+                        "s x s box); 0.6 matches the path-traced training images best (benchmarks/RESULTS.md)")
     s.add_argument("--device", default=None)
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(fn=cmd_export)

@@ -295,16 +295,41 @@ def shade(asset: BakedAsset, face: Tensor, bary: Tensor, view_dirs: Tensor, spec
     return out.clamp(0.0, 1.0)
 
 
+def resolve(fine: Tensor, s: int, sigma: float) -> Tensor:
+    """Fine samples [H s, W s, C] filtered into pixels [H, W, C] as the page's resolve pass does: the s x s box of
+    each pixel (``sigma`` 0), else a Gaussian of ``sigma`` pixels over the fine samples within 3 sigma of the pixel's
+    centre in x and in y (a square window), normalised by the weights of the samples inside the image."""
+    hs, ws, c = fine.shape
+    h, w = hs // s, ws // s
+    if sigma <= 0:
+        return fine.reshape(h, s, w, s, c).mean(dim=(1, 3))
+
+    def axis_weights(n: int) -> Tensor:
+        centre = torch.arange(n, dtype=torch.float64) + 0.5  # output pixel centres, in pixels
+        sample = (torch.arange(n * s, dtype=torch.float64) + 0.5) / s
+        d = sample[None, :] - centre[:, None]
+        wt = torch.exp(-0.5 * (d / sigma) ** 2) * (d.abs() <= 3.0 * sigma + 1e-9)
+        return wt.float()
+
+    wy, wx = axis_weights(h), axis_weights(w)  # [h, H s], [w, W s]
+    num = torch.einsum("yi,ijc,xj->yxc", wy, fine, wx)
+    den = torch.einsum("yi,xj->yx", wy, wx)[..., None]
+    return num / den
+
+
 @torch.no_grad()
 def render(asset: BakedAsset, cam: PinholeCamera, background: tuple[float, float, float] = (1.0, 1.0, 1.0),
-           specular: bool = True, supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+           specular: bool = True, supersample: int = 1, pixel_filter: float | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
     """The asset seen by ``cam``: float RGB [H, W, 3] in [0, 1] and the fraction of each pixel the mesh covers.
 
-    ``supersample`` s: s x s rays per pixel through the centres of an s-times finer pixel grid, averaged (the page
-    renders an s-times larger image and averages each s x s block, which is the same)."""
+    ``supersample`` s: rays through the centres of an s-times finer pixel grid; ``pixel_filter`` sigma (default: the
+    asset's, else 0): each pixel a Gaussian-weighted mean of the fine samples within 3 sigma pixels of its centre
+    (:func:`resolve`), or with 0 the mean of its own s x s samples, as the page's resolve pass computes it."""
     s = int(supersample)
     if s < 1:
         raise AnisdfError(f"supersample must be a positive integer, got {supersample}")
+    sigma = float(asset.manifest.get("pixel_filter", 0.0) if pixel_filter is None else pixel_filter)
     fine = PinholeCamera(cam.c2w, cam.fx * s, cam.fy * s, cam.cx * s, cam.cy * s, cam.width * s, cam.height * s,
                          cam.distortion)
     face, _, bary = cast(asset, fine)
@@ -313,6 +338,6 @@ def render(asset: BakedAsset, cam: PinholeCamera, background: tuple[float, float
     hit = face >= 0
     if hit.any():
         rgb[hit] = shade(asset, face[hit], bary[hit], dirs[hit], specular=specular)
-    rgb = rgb.reshape(cam.height, s, cam.width, s, 3).mean(dim=(1, 3))
-    cover = hit.float().reshape(cam.height, s, cam.width, s).mean(dim=(1, 3))
-    return rgb.numpy(), cover.numpy()
+    samples = torch.cat([rgb, hit.float()[:, None]], -1).reshape(cam.height * s, cam.width * s, 4)
+    out = resolve(samples, s, sigma)
+    return out[..., :3].numpy(), out[..., 3].numpy()

@@ -475,9 +475,10 @@ def evaluate(run: Path, split: str = "test", max_views: int = 0, gt_mesh: Path |
         protocol["baked"] = {
             "dir": str(baked), "faces": man.get("faces"), "texture": man.get("texture"),
             "specular_texture": man.get("specular_texture"), "lobes": man.get("lobes"),
-            "supersample": man.get("supersample", 1),
+            "supersample": man.get("supersample", 1), "pixel_filter": man.get("pixel_filter", 0.0),
             "renderer": "anisdf.export.baked_renderer as the viewer page draws: supersample x supersample rays per "
-                        "pixel through the centres of a finer pixel grid, averaged; the same ground truth and "
+                        "pixel through the centres of a finer pixel grid, filtered into pixels (a Gaussian of "
+                        "pixel_filter pixels; 0: each pixel's own samples averaged); the same ground truth and "
                         "background as the neural render",
         }
     if maes:
@@ -534,6 +535,7 @@ def _export_camera(run: Path, cfg, ck: dict[str, Any]) -> tuple[dict[str, Any] |
 
 def export(run: Path, out: Path, faces: int = 200_000, texture: int = 1024, specular_texture: int = 0,
            lobes: int = 3, directions: int = 64, resolution: int = 512, supersample: int = 2,
+           pixel_filter: float = 0.6,
            device: str | None = None, progress: bool = True) -> dict[str, Any]:
     """Bake RUN into a real-time asset in OUT (:mod:`anisdf.export.bake`): model.glb, specular_*.png, index.html and
     export.json (settings, file sizes, timings). Returns export.json's content."""
@@ -556,6 +558,8 @@ def export(run: Path, out: Path, faces: int = 200_000, texture: int = 1024, spec
     opts.validate()
     if not 1 <= supersample <= 4:
         raise AnisdfError(f"--supersample must be between 1 and 4, got {supersample}")
+    if not 0.0 <= pixel_filter <= 2.0:
+        raise AnisdfError(f"--pixel-filter must be between 0 and 2 pixels, got {pixel_filter}")
     dev = pick_device(device or "auto")
     timings: dict[str, float] = {}
     clock = [time.perf_counter()]
@@ -580,6 +584,7 @@ def export(run: Path, out: Path, faces: int = 200_000, texture: int = 1024, spec
         "faces_requested": faces, "texture": opts.texture, "specular_texture": opts.spec_size,
         "lobes": opts.lobes, "directions": opts.directions, "diffuse_directions": opts.diffuse_directions,
         "fit_iters": opts.fit_iters, "sharpness_range": list(SHARPNESS_RANGE), "supersample": supersample,
+        "pixel_filter": pixel_filter,
         "diffuse": "view-independent part of the blended colour w c_view + (1 - w) c_ref: the per-texel fit's "
                    "constant term (hemisphere mean with K = 0)",
         "up": up, "camera": camera, "stats": baked.stats,
