@@ -111,6 +111,35 @@ def test_a_moving_camera_gets_a_quick_picture_then_sharper_ones_at_rest(viewed_r
         viewer.close()
 
 
+def test_a_mesh_goes_to_the_browser_only_when_ticked_and_thinned(viewed_run, monkeypatch):
+    """A large extracted mesh would hold back a browser's first picture: it is decimated, and sent on demand."""
+    import trimesh
+
+    from anisdf.systems.trainer import load_run
+    from anisdf.viewer import server
+
+    _, model, _ = load_run(viewed_run)
+    viewer = Viewer(model, None, port=_free_port())
+    try:
+        sphere = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
+        monkeypatch.setattr(server, "MESH_FACES", 1000)
+        added = []
+        add = viewer.server.scene.add_mesh_trimesh
+        monkeypatch.setattr(viewer.server.scene, "add_mesh_trimesh", lambda name, m, **kw: added.append(m) or add(
+            name, m, **kw))
+        viewer.set_mesh(sphere)
+        assert not added and viewer.mesh is None  # offered, not sent
+        assert 500 <= len(viewer.mesh_data.faces) <= 1000
+        viewer.gui_mesh.value = True
+        assert len(added) == 1 and viewer.mesh is not None and viewer.mesh.visible
+        viewer.gui_mesh.value = False
+        assert not viewer.mesh.visible and len(added) == 1
+        viewer.set_mesh(None)
+        assert viewer.mesh is None and viewer.mesh_data is None
+    finally:
+        viewer.close()
+
+
 def test_the_step_hook_changes_nothing_and_costs_nothing_without_a_browser(toy_scene, tmp_path):
     from anisdf.config import load_config
     from anisdf.data.dataparsers import load_scene
@@ -226,7 +255,7 @@ def _wait(cond, seconds: float = 30.0) -> None:  # noqa: ANN001
 def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_path):
     sync_playwright = _browser()
     viewer, watcher = open_run(viewed_run, port=_free_port(), max_resolution=256)
-    assert viewer.mesh is not None and viewer.eval_folder is not None and len(viewer.frustums) == 16
+    assert viewer.gui_mesh is not None and viewer.eval_folder is not None and len(viewer.frustums) == 16
     stop = threading.Event()
     server = threading.Thread(target=serve, args=(viewer, watcher, stop), daemon=True)
     server.start()

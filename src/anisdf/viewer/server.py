@@ -34,6 +34,20 @@ MIN_PREVIEW = 32
 """Smallest long side (pixels) of a moving camera's picture."""
 REST_SECONDS = 0.25
 """A camera unchanged this long counts as resting: its picture is refined."""
+MESH_FACES = 200_000
+"""The mesh shown in the browser is decimated to at most this many faces."""
+
+
+def _display_mesh(mesh: Any) -> Any:
+    """``mesh`` with at most :data:`MESH_FACES` faces (quadric decimation, fast-simplification)."""
+    if len(mesh.faces) <= MESH_FACES:
+        return mesh
+    import fast_simplification
+    import trimesh
+
+    v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
+                                        np.asarray(mesh.faces, dtype=np.int64), target_count=MESH_FACES)
+    return trimesh.Trimesh(vertices=v, faces=f, process=False)
 
 
 def import_viser():  # noqa: ANN201
@@ -136,6 +150,8 @@ class Viewer:
         self.gui_cameras.on_update(lambda _: self._show_cameras(self.gui_cameras.value))
         self.frustums: list[Any] = []
         self.mesh = None
+        """The mesh's scene node, once shown."""
+        self.mesh_data = None
         self.gui_mesh = None
         self.eval_folder = None
         if scene is not None:
@@ -209,16 +225,27 @@ class Viewer:
             f.visible = visible
 
     def set_mesh(self, mesh: Any | None) -> None:
-        """Show (or replace, or with None remove) a trimesh mesh in the normalised frame, hidden until ticked."""
+        """Offer (or replace, or with None remove) a trimesh mesh in the normalised frame behind the "Mesh" checkbox.
+
+        The mesh goes to the browsers only once the box is ticked, decimated to :data:`MESH_FACES` faces: a 512^3
+        marching-cubes mesh (over a million faces, tens of MB) sent to every new browser with the scene would hold
+        back its first picture by tens of seconds."""
         if self.mesh is not None:
             self.mesh.remove()
             self.mesh = None
+        self.mesh_data = None if mesh is None else _display_mesh(mesh)
         if mesh is None:
             return
         if self.gui_mesh is None:
             self.gui_mesh = self.server.gui.add_checkbox("Mesh", False, hint="the extracted mesh (RUN/mesh.*)")
-            self.gui_mesh.on_update(lambda _: setattr(self.mesh, "visible", self.gui_mesh.value) if self.mesh else None)
-        self.mesh = self.server.scene.add_mesh_trimesh("/mesh", mesh, visible=self.gui_mesh.value)
+            self.gui_mesh.on_update(lambda _: self._show_mesh(self.gui_mesh.value))
+        self._show_mesh(self.gui_mesh.value)
+
+    def _show_mesh(self, visible: bool) -> None:
+        if self.mesh is None and visible and self.mesh_data is not None:
+            self.mesh = self.server.scene.add_mesh_trimesh("/mesh", self.mesh_data)
+        elif self.mesh is not None:
+            self.mesh.visible = visible
 
     def set_eval(self, metrics: dict[str, Any], figures: list[Path]) -> None:
         """The scores of RUN/eval.json and its figures (RUN/eval/*.png), one at a time."""
