@@ -3,7 +3,8 @@
 1. First picture: ``anisdf view RUN`` (its :func:`~anisdf.viewer.run.open_run`) served to headless Chromium (Debian's
    ``chromium``, SwiftShader WebGL, as the tests use it). Times, from ``page.goto``: the browser's connection, its
    first camera message, the first picture sent (and how long that picture took to render, its size), the sharper
-   pictures that follow while the camera rests. The target: a first picture within 2 s of the camera message.
+   pictures that follow while the camera rests; beside them, how long a bare viser page (empty scene) takes to load
+   and connect. The target: a first picture within 2 s.
 2. ``train --viewer`` with nobody connected: ``--steps`` steps of cpu-quick on DATA (default: the run's dataset) with
    and without the viewer, ``--repeats`` times each, alternating; the step hook's own time is also timed per call.
 
@@ -88,6 +89,35 @@ def first_picture(run: Path, rest_seconds: float = 6.0) -> dict[str, float | str
     return out
 
 
+def bare_viser_connect() -> float:
+    """Seconds from page.goto to the connection of a viser server with an empty scene: the page's own load."""
+    import contextlib
+    import io
+
+    import viser
+    from playwright.sync_api import sync_playwright
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        server = viser.ViserServer(port=_free_port(), verbose=False)
+    clients: list[float] = []
+    server.on_client_connect(lambda _c: clients.append(time.perf_counter()))
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=[
+                "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"])
+            page = browser.new_page(viewport={"width": 960, "height": 640})
+            start = time.perf_counter()
+            page.goto(f"http://127.0.0.1:{server.get_port()}/")
+            while not clients and time.perf_counter() - start < 60:
+                time.sleep(0.005)
+            browser.close()
+    finally:
+        server.stop()
+    if not clients:
+        raise SystemExit("the bare viser page did not connect in 60 s")
+    return clients[0] - start
+
+
 def training_overhead(data: Path, steps: int, repeats: int, work: Path) -> dict[str, list[float]]:
     """Wall seconds of ``steps`` cpu-quick steps with and without ``--viewer`` (nobody connected)."""
     times: dict[str, list[float]] = {"plain": [], "viewer": []}
@@ -130,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     fp = first_picture(args.run)
+    fp["bare_viser_page_connected_s"] = bare_viser_connect()
     print("| first picture (anisdf view, headless Chromium) | seconds / value |\n|---|---|")
     for k, v in fp.items():
         print(f"| {k} | {v:.2f} |" if isinstance(v, float) else f"| {k} | {v} |")
