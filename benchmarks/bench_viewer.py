@@ -32,6 +32,13 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _open(p):  # noqa: ANN001, ANN202  (playwright's sync API)
+    """Headless Debian Chromium with software WebGL (as the tests run it) and a 960 x 640 page."""
+    browser = p.chromium.launch(executable_path=CHROMIUM, args=[
+        "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"])
+    return browser, browser.new_page(viewport={"width": 960, "height": 640})
+
+
 def first_picture(run: Path, rest_seconds: float = 6.0) -> dict[str, float | str]:
     """Seconds from page.goto to the browser's connection, its camera, the first and later pictures."""
     from playwright.sync_api import sync_playwright
@@ -55,9 +62,7 @@ def first_picture(run: Path, rest_seconds: float = 6.0) -> dict[str, float | str
     thread.start()
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=[
-                "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"])
-            page = browser.new_page(viewport={"width": 960, "height": 640})
+            browser, page = _open(p)
             start = time.perf_counter()
             page.goto(viewer.url)
             while time.perf_counter() - start < 120 and (not shown or time.perf_counter() - shown[0][0] < rest_seconds):
@@ -103,9 +108,7 @@ def bare_viser_connect() -> float:
     server.on_client_connect(lambda _c: clients.append(time.perf_counter()))
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=[
-                "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"])
-            page = browser.new_page(viewport={"width": 960, "height": 640})
+            browser, page = _open(p)
             start = time.perf_counter()
             page.goto(f"http://127.0.0.1:{server.get_port()}/")
             while not clients and time.perf_counter() - start < 60:
