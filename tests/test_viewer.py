@@ -111,6 +111,30 @@ def test_a_moving_camera_gets_a_quick_picture_then_sharper_ones_at_rest(viewed_r
         viewer.close()
 
 
+def test_a_browser_that_leaves_during_a_render_is_sent_nothing(viewed_run, monkeypatch):
+    from anisdf.systems.trainer import load_run
+    from anisdf.viewer import server
+
+    _, model, _ = load_run(viewed_run)
+    viewer = Viewer(model, None, port=_free_port())
+    try:
+        c2w = np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 3.0]])
+        client = _FakeClient(_viser_camera(c2w, 0.8, 4 / 3, stamp=time.time()))
+        viewer._connect(client)
+        render = server.render_frame
+
+        def render_then_leave(*a, **k):  # noqa: ANN002, ANN003, ANN202
+            frame = render(*a, **k)
+            viewer._views.pop(client.client_id)  # viser's disconnect callback, from its own thread
+            return frame
+
+        monkeypatch.setattr(server, "render_frame", render_then_leave)
+        viewer.tick()
+        assert client.pictures == [] and viewer.stats.frames == 0
+    finally:
+        viewer.close()
+
+
 def test_a_mesh_goes_to_the_browser_only_when_ticked_and_thinned(viewed_run, monkeypatch):
     """A large extracted mesh would hold back a browser's first picture: it is decimated, and sent on demand."""
     import trimesh

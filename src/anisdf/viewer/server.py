@@ -336,6 +336,8 @@ class Viewer:
             stamp, map_name, top, version = camera.update_timestamp, self.gui_map.value, self.gui_resolution.value, \
                 self.model_version
             frame = render_frame(self.model, ViewCamera.from_viser(camera), side, map_name, self.chunk)
+            if cv.client.client_id not in self._views:  # the browser left while this picture was rendered
+                return True
             self._show(cv, frame)
             cv.camera_stamp, cv.key, cv.long_side = stamp, (map_name, top, version), side
             cv.t_frame, cv.last_seconds = time.time(), frame.seconds
