@@ -39,15 +39,10 @@ MESH_FACES = 200_000
 
 
 def _display_mesh(mesh: Any) -> Any:
-    """``mesh`` with at most :data:`MESH_FACES` faces (quadric decimation, fast-simplification)."""
-    if len(mesh.faces) <= MESH_FACES:
-        return mesh
-    import fast_simplification
-    import trimesh
+    """``mesh`` with at most :data:`MESH_FACES` faces (the export's quadric decimation)."""
+    from anisdf.export.bake import decimate
 
-    v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
-                                        np.asarray(mesh.faces, dtype=np.int64), target_count=MESH_FACES)
-    return trimesh.Trimesh(vertices=v, faces=f, process=False)
+    return decimate(mesh, MESH_FACES)
 
 
 def import_viser():  # noqa: ANN201
