@@ -111,6 +111,26 @@ def test_a_moving_camera_gets_a_quick_picture_then_sharper_ones_at_rest(viewed_r
         viewer.close()
 
 
+def test_open_run_warms_the_renderer_and_sizes_the_first_picture_from_its_speed(viewed_run):
+    """``anisdf view`` renders the home view once before any browser connects, so a browser's first picture is
+    sized for the preview time from a measured speed instead of the fixed 64 px guess."""
+    from anisdf.viewer.run import open_run
+
+    viewer, _ = open_run(viewed_run, port=_free_port(), max_resolution=128)
+    try:
+        assert viewer.home is not None and viewer._rays_per_second > 0
+        viewer.preview_seconds = 1e-4  # so little time that the measured speed allows the smallest picture
+        cam = _viser_camera(viewer.home.c2w, viewer.home.fov_y, viewer.home.aspect, stamp=time.time() + 3600)
+        client = _FakeClient(cam)
+        viewer._connect(client)
+        assert viewer.tick() and max(client.pictures[-1].shape[:2]) == 32
+        viewer.preview_seconds = 1e3  # and so much that it allows the largest
+        cam.update_timestamp += 1
+        assert viewer.tick() and max(client.pictures[-1].shape[:2]) == 128
+    finally:
+        viewer.close()
+
+
 def test_a_browser_that_leaves_during_a_render_is_sent_nothing(viewed_run, monkeypatch):
     from anisdf.systems.trainer import load_run
     from anisdf.viewer import server

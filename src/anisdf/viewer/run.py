@@ -123,6 +123,7 @@ def open_run(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str |
     watcher = RunWatcher(run, viewer, dev, np.asarray(ck["to_world"]))
     watcher._set_run_status(ck)
     watcher.poll(force=True)
+    viewer.warm_up()
     return viewer, watcher
 
 
