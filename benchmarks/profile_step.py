@@ -27,7 +27,8 @@ from anisdf.benchmarks.speed import time_train_steps
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.errors import AnisdfError
-from anisdf.systems.trainer import Trainer, pick_device
+from anisdf.training.trainer import Trainer
+from anisdf.utils.devices import pick_device
 
 
 def main(argv: list[str] | None = None) -> int:

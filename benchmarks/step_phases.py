@@ -25,8 +25,8 @@ import anisdf.models.anisdf as model_module
 from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.errors import AnisdfError
-from anisdf.systems.checkpoint import load_checkpoint
-from anisdf.systems.trainer import Trainer
+from anisdf.training.checkpoint import load_checkpoint
+from anisdf.training.trainer import Trainer
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,7 +19,7 @@ from test_training import TINY
 import anisdf
 from anisdf.cli import main
 from anisdf.eval.paper_tables import METRICS
-from anisdf.systems import cluster, reproduce
+from anisdf.orchestration import cluster, reproduce
 
 try:
     import ray

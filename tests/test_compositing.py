@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from scenes import write_test_scene
 
 from anisdf.data import RayDataset, load_scene
 from anisdf.data.images import composite
-from anisdf.data.testscenes import write_test_scene
 from anisdf.eval.metrics import composite_on_white
-from anisdf.export.visualize import to_rgb_uint8
+from anisdf.utils.images import to_rgb_uint8
 
 
 def test_composite_on_tensors_and_arrays() -> None:

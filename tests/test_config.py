@@ -7,9 +7,9 @@ from importlib import resources
 
 import pytest
 import yaml
+from scenes import write_test_scene
 
 from anisdf.config import Config, config_from_dict, load_config, preset_names, set_key
-from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import AnisdfError
 
 
@@ -170,7 +170,7 @@ def test_a_saved_config_with_a_bad_value_is_refused():
 def test_auto_preset_follows_the_kind_of_data(tmp_path, fmt, masks, kind):
     """``--preset auto`` (train's default): objects (alpha or masks) get the NeRF-synthetic preset, opaque photos
     without masks the unbounded Mip-NeRF 360 one, reading its own images when there is no images_4 folder."""
-    from anisdf.systems.commands import AUTO_PRESETS, auto_preset, data_kind
+    from anisdf.tasks.train import AUTO_PRESETS, auto_preset, data_kind
 
     write_test_scene(tmp_path, fmt, masks=masks)
     assert data_kind(tmp_path) == kind

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from anisdf.systems.cpu_threads import ThreadTuner
+from anisdf.training.cpu_threads import ThreadTuner
 
 
 def _machine(rates: dict[int, float]):

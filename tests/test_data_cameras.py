@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scenes import look_at
 
 from anisdf.data.cameras import Cameras, distort, undistort
-from anisdf.data.testscenes import look_at
 
 
 def make_cameras(n: int = 3, distortion: tuple[float, float, float, float] | None = None) -> Cameras:

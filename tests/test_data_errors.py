@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from scenes import write_test_scene
 
 from anisdf.data import detect_format, inspect_dataset, load_scene
-from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import AnisdfError, DataError
 
 

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from scenes import write_test_scene
 
 from anisdf.data import detect_format, load_scene
-from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import DataError
 
 DIST = (0.08, -0.03, 0.004, -0.003)
@@ -120,7 +120,7 @@ def test_rgba_masks_and_normals(tmp_path: Path) -> None:
 @pytest.mark.parametrize("suffix", ["_normal.png", "_normal_0001.png"])
 def test_reference_normal_maps_under_both_public_names(tmp_path: Path, suffix: str) -> None:
     """Shiny Blender's r_i_normal.png and NeRF-synthetic's r_i_normal_0001.png: world-space (n + 1) / 2."""
-    from anisdf.data.testscenes import _render
+    from scenes import _render
 
     truth = write_test_scene(tmp_path / "b", "nerf-synthetic", width=24, height=20, normal_suffix=suffix)
     assert sorted(p.name for p in (tmp_path / "b" / "test").iterdir() if "normal" in p.name) == sorted(

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from scenes import write_test_scene
 
 from anisdf.data import RayBatch, RayDataset, Scene, load_scene
 from anisdf.data.rays import eval_background
-from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import DataError
 
 

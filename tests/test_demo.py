@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from anisdf.data.dataparsers import load_scene
 from anisdf.eval.metrics import load_mesh
-from anisdf.systems.demo import DEMO_OVERRIDES, demo_scene
+from anisdf.tasks.demo import DEMO_OVERRIDES, demo_scene
 
 
 def test_the_bundled_bunny_loads_with_test_normals_and_a_reference_mesh():

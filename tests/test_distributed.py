@@ -19,9 +19,9 @@ from anisdf.data.dataparsers import load_scene
 from anisdf.data.rays import RayBatch
 from anisdf.model_components.ray_marching import Samples, march
 from anisdf.models import anisdf as model_module
-from anisdf.systems import checkpoint
-from anisdf.systems.distributed import rank_seed
-from anisdf.systems.trainer import Trainer
+from anisdf.training import checkpoint
+from anisdf.training.distributed import rank_seed
+from anisdf.training.trainer import Trainer
 
 pytestmark = pytest.mark.skipif(not td.is_available() or not td.is_gloo_available(),
                                 reason="this torch build has no torch.distributed with gloo")

@@ -20,7 +20,7 @@ pytest.importorskip("xatlas", reason="anisdf export needs the export extra (pip 
 pytest.importorskip("fast_simplification", reason="anisdf export needs the export extra")
 pytest.importorskip("pygltflib", reason="anisdf export needs the export extra")
 
-from anisdf.export.baked_renderer import BakedAsset, PinholeCamera, render  # noqa: E402
+from anisdf.export.reference_renderer import BakedAsset, PinholeCamera, render  # noqa: E402
 
 
 def _random_unit(n: int, gen: torch.Generator) -> torch.Tensor:
@@ -166,7 +166,7 @@ def _shader_resolve(fine: np.ndarray, s: int, sigma: float) -> np.ndarray:
 def test_pixel_filter_matches_the_pages_resolve_pass():
     """The reference renderer's separable resolve is the page's per-pixel loop: box, and Gaussian windows that
     reach past the image's edges (renormalised there)."""
-    from anisdf.export.baked_renderer import resolve
+    from anisdf.export.reference_renderer import resolve
 
     fine = np.random.default_rng(0).random((5 * 3, 7 * 3, 4))
     for s, sigma in ((3, 0.0), (3, 0.6), (2, 0.35), (1, 0.6)):
@@ -178,14 +178,14 @@ def test_pixel_filter_matches_the_pages_resolve_pass():
 
 
 def test_reference_renderer_casts_and_shades_a_sphere():
-    from anisdf.data.testscenes import look_at
+    from scenes import look_at
 
     c2w = look_at(np.array([0.0, -2.0, 0.3]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     cam = PinholeCamera(c2w, 60.0, 60.0, 32.0, 30.0, 64, 60)
     img, cover = render(_sphere_asset(), cam)
     hit = cover > 0.5
     # the silhouette of a sphere of radius 0.5 (the icosphere's is a little inside it)
-    from anisdf.export.baked_renderer import pixel_rays
+    from anisdf.export.reference_renderer import pixel_rays
 
     o, d = pixel_rays(cam)
     b = d @ o

@@ -13,10 +13,9 @@ import trimesh
 
 from anisdf.errors import AnisdfError
 from anisdf.eval.metrics import chamfer_distance, load_mesh
-from anisdf.export import video as video_mod
 from anisdf.export.mesh import color_vertices, extract_mesh, remove_floaters, save_mesh, to_world
-from anisdf.export.video import orbit_poses, write_video
-from anisdf.export.visualize import (
+from anisdf.utils import video as video_mod
+from anisdf.utils.images import (
     depth_to_image,
     hstack_labeled,
     normal_to_image,
@@ -24,6 +23,7 @@ from anisdf.export.visualize import (
     scalar_to_image,
     to_uint8,
 )
+from anisdf.utils.video import orbit_poses, write_video
 
 
 def sphere_sdf(center: tuple[float, float, float] = (0.0, 0.0, 0.0), r: float = 0.5):

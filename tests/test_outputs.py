@@ -119,7 +119,7 @@ def test_eval_never_changes_the_mesh_silently(trained_run, toy_scene, tmp_path, 
 def test_eval_holds_out_every_8th_view_at_the_dataset_resolution(tmp_path, capsys):
     """COLMAP / LLFF (Mip-NeRF 360): the test views are every 8th in name order, as Table 5; eval reloads them
     at the resolution on disk although training used half of it."""
-    from anisdf.data.testscenes import write_test_scene
+    from scenes import write_test_scene
 
     scene = tmp_path / "scene"
     truth = write_test_scene(scene, "colmap", n_images=17, width=16, height=12)
@@ -159,7 +159,7 @@ def test_chamfer_cli_prints_the_distance_last(tmp_path, capsys):
 def test_photos_without_masks_train_validate_render_and_evaluate(tmp_path, capsys):
     """Opaque photos without masks (instant-ngp, LLFF, COLMAP) have no white background to compose on:
     validation, render and eval compare them as photographed."""
-    from anisdf.data.testscenes import write_test_scene
+    from scenes import write_test_scene
 
     scene = tmp_path / "scene"
     write_test_scene(scene, "instant-ngp", n_images=8, width=16, height=12, distortion=(0.02, 0.0, 0.0, 0.0))

@@ -9,15 +9,16 @@ from pathlib import Path
 
 import pytest
 import yaml
+from scenes import write_test_scene
 from test_training import TINY
 
 from anisdf.cli import main
 from anisdf.config import load_config
-from anisdf.data.testscenes import write_test_scene
 from anisdf.errors import AnisdfError
 from anisdf.eval.paper_tables import METRICS, TABLES, find_scenes, get_table
-from anisdf.systems import commands, reproduce
-from anisdf.systems.trainer import Trainer
+from anisdf.orchestration import reproduce
+from anisdf.tasks import train as train_task
+from anisdf.training.trainer import Trainer
 
 PAPER_TEX = Path(__file__).resolve().parents[2] / "shared" / "reference" / "anisdf-paper.tex"
 FAST = {"scale": "cpu", "minutes": 0.0, "max_steps": 2, "overrides": TINY, "max_views": 1, "mesh_resolution": 32,
@@ -119,8 +120,8 @@ def test_table_run_writes_rows_beside_the_papers_and_resumes(lego_root, tmp_path
     def no_training(*a, **k):
         raise AssertionError("a finished row was trained again")
 
-    monkeypatch.setattr(commands, "train", no_training)
-    monkeypatch.setattr(commands, "evaluate", no_training)
+    monkeypatch.setattr(train_task, "train", no_training)
+    monkeypatch.setattr("anisdf.tasks.evaluate.evaluate", no_training)
     again = reproduce.reproduce("nerf-synthetic", lego_root, out, seeds=[0, 1], **FAST)
     assert again["rows"] == rows
     with pytest.raises(AnisdfError, match="table 'nerf-synthetic', not 'ablation'"):
@@ -144,8 +145,8 @@ def test_interrupted_run_is_resumed(lego_root, tmp_path, monkeypatch):
     assert json.loads((out / "reproduce.json").read_text())["rows"] == []
     monkeypatch.setattr(Trainer, "train_step", step)
     calls: list[dict] = []
-    train = commands.train
-    monkeypatch.setattr(commands, "train", lambda *a, **k: calls.append(k) or train(*a, **k))
+    train = train_task.train
+    monkeypatch.setattr(train_task, "train", lambda *a, **k: calls.append(k) or train(*a, **k))
     rows = reproduce.reproduce("nerf-synthetic", lego_root, out, **FAST)["rows"]
     assert [c["resume"] for c in calls] == [True]
     assert len(rows) == 1 and rows[0]["status"] == "done" and rows[0]["steps"] == 2
@@ -160,7 +161,7 @@ def test_max_steps_alone_makes_cpu_runs_step_based(lego_root, tmp_path, monkeypa
         seen.append((max_minutes, max_steps))
         raise AnisdfError("recorded")
 
-    monkeypatch.setattr("anisdf.systems.cluster.train_or_resume", record)
+    monkeypatch.setattr("anisdf.orchestration.cluster.train_or_resume", record)
     opts = {k: v for k, v in FAST.items() if k not in ("minutes", "max_steps")}
     cases = (({"max_steps": 1500}, (None, 1500)), ({}, (10.0, None)), ({"minutes": 3.0, "max_steps": 7}, (3.0, 7)),
              ({"minutes": 0.0}, (None, None)))

@@ -16,8 +16,8 @@ from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.data.synthetic import scene_sdf
 from anisdf.errors import AnisdfError, TrainingDiverged
-from anisdf.systems import checkpoint
-from anisdf.systems.trainer import Trainer
+from anisdf.training import checkpoint
+from anisdf.training.trainer import Trainer
 
 TINY = [
     "geometry.n_levels=8", "geometry.coarse_levels=5", "geometry.coarse_start_levels=3",

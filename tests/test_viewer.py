@@ -19,7 +19,7 @@ from anisdf.cli import main
 
 viser = pytest.importorskip("viser", reason="the viewer extra is not installed (pip install 'anisdf[viewer]')")
 
-from anisdf.viewer.render import ViewCamera, render_frame  # noqa: E402
+from anisdf.viewer.frames import ViewCamera, render_frame  # noqa: E402
 from anisdf.viewer.run import open_run, serve  # noqa: E402
 from anisdf.viewer.server import Viewer, check_listen  # noqa: E402
 
@@ -52,12 +52,11 @@ def _viser_camera(c2w: np.ndarray, fov: float, aspect: float, stamp: float = 1.0
 
 def test_a_browser_camera_at_a_training_view_renders_that_view(viewed_run):
     """The camera conversion (quaternion, vertical fov, aspect) gives the training camera's own rays."""
-    from anisdf.systems.commands import _scene_for_run
-    from anisdf.systems.rendering import render_rays_to_maps
-    from anisdf.systems.trainer import load_run
+    from anisdf.models.views import render_rays_to_maps
+    from anisdf.tasks.loading import load_run, scene_for_run
 
     cfg, model, ck = load_run(viewed_run)
-    scene = _scene_for_run(viewed_run, cfg, ck, split="train")
+    scene = scene_for_run(viewed_run, cfg, ck, split="train")
     cams = scene.cameras
     c2w = cams.c2w[3].numpy().astype(np.float64)
     fov = 2 * np.arctan(0.5 * cams.height / float(cams.fy[3]))
@@ -87,7 +86,7 @@ class _FakeClient:
 
 
 def test_a_moving_camera_gets_a_quick_picture_then_sharper_ones_at_rest(viewed_run):
-    from anisdf.systems.trainer import load_run
+    from anisdf.tasks.loading import load_run
 
     _, model, _ = load_run(viewed_run)
     viewer = Viewer(model, None, port=_free_port(), max_resolution=128)
@@ -132,7 +131,7 @@ def test_open_run_warms_the_renderer_and_sizes_the_first_picture_from_its_speed(
 
 
 def test_a_browser_that_leaves_during_a_render_is_sent_nothing(viewed_run, monkeypatch):
-    from anisdf.systems.trainer import load_run
+    from anisdf.tasks.loading import load_run
     from anisdf.viewer import server
 
     _, model, _ = load_run(viewed_run)
@@ -159,7 +158,7 @@ def test_a_mesh_goes_to_the_browser_only_when_ticked_and_thinned(viewed_run, mon
     """A large extracted mesh would hold back a browser's first picture: it is decimated, and sent on demand."""
     import trimesh
 
-    from anisdf.systems.trainer import load_run
+    from anisdf.tasks.loading import load_run
     from anisdf.viewer import server
 
     _, model, _ = load_run(viewed_run)
@@ -187,7 +186,7 @@ def test_a_mesh_goes_to_the_browser_only_when_ticked_and_thinned(viewed_run, mon
 def test_the_step_hook_changes_nothing_and_costs_nothing_without_a_browser(toy_scene, tmp_path):
     from anisdf.config import load_config
     from anisdf.data.dataparsers import load_scene
-    from anisdf.systems.trainer import Trainer
+    from anisdf.training.trainer import Trainer
 
     def run(name: str, with_viewer: bool) -> tuple[dict, int, int]:
         cfg = load_config("cpu-quick", [*FAST, "train.max_steps=4"])
@@ -214,7 +213,7 @@ def test_the_step_hook_changes_nothing_and_costs_nothing_without_a_browser(toy_s
 def test_the_live_viewer_renders_between_steps_and_ctrl_c_keeps_a_resumable_checkpoint(toy_scene, tmp_path):
     from anisdf.config import load_config
     from anisdf.data.dataparsers import load_scene
-    from anisdf.systems.trainer import Trainer
+    from anisdf.training.trainer import Trainer
 
     cfg = load_config("cpu-quick", [*FAST, "train.max_steps=50"])
     scene = load_scene(toy_scene, downscale=1)
@@ -250,7 +249,7 @@ def test_ports_and_hosts(viewed_run, capsys):
         taken.listen()
         port = taken.getsockname()[1]
         assert not check_listen("127.0.0.1", port)
-        from anisdf.systems.trainer import load_run
+        from anisdf.tasks.loading import load_run
 
         _, model, _ = load_run(viewed_run)
         viewer = Viewer(model, None, port=port)

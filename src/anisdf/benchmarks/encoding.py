@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     args = parser.parse_args(argv)
     from anisdf.errors import AnisdfError
-    from anisdf.systems.trainer import pick_device
+    from anisdf.utils.devices import pick_device
 
     try:
         device = pick_device(args.device)

@@ -60,8 +60,8 @@ def bench_normals(steps: int = 300, size: int = 96, data: Path | None = None) ->
     from anisdf.data.dataparsers import load_scene
     from anisdf.data.rays import RayDataset, eval_background
     from anisdf.data.synthetic import make_synthetic_scene
-    from anisdf.systems.rendering import render_view
-    from anisdf.systems.trainer import Trainer
+    from anisdf.models.views import render_view
+    from anisdf.training.trainer import Trainer
 
     rows = []
     points = surface_points(4000)

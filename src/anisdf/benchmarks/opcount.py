@@ -16,7 +16,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 if TYPE_CHECKING:
-    from anisdf.systems.trainer import Trainer
+    from anisdf.training.trainer import Trainer
 
 # dispatched but launch no kernel: allocations and metadata
 _NO_KERNEL = {"empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided", "_local_scalar_dense",

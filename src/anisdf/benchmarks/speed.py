@@ -39,7 +39,8 @@ def _scene(data: Path | None, downscale: float):
 def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, device: torch.device | None = None,
                      preset: str = "cpu-quick") -> dict[str, Any]:
     """Samples per second of whole training steps of ``preset``, after ``warmup`` steps."""
-    from anisdf.systems.trainer import Trainer, pick_device
+    from anisdf.training.trainer import Trainer
+    from anisdf.utils.devices import pick_device
 
     device = device or pick_device("auto")
     cfg = load_config(preset, [f"geometry.encoding_backend={backend}", "train.val_every=0",
@@ -75,8 +76,9 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
     import numpy as np
 
     from anisdf.data.rays import RayDataset, eval_background
-    from anisdf.systems.rendering import render_view
-    from anisdf.systems.trainer import Trainer, pick_device
+    from anisdf.models.views import render_view
+    from anisdf.training.trainer import Trainer
+    from anisdf.utils.devices import pick_device
 
     device = device or pick_device("auto")
     cfg = load_config(preset, ["train.val_every=0", "train.ckpt_every=0"])
@@ -108,7 +110,7 @@ def run_bench(as_json: bool = False, quick: bool = False, data: Path | None = No
     """Encoding, training-step and time-to-quality figures on ``device`` (auto: CUDA if there is one)."""
     from anisdf.benchmarks.encoding import bench_encoding, format_table
     from anisdf.fields.hash_grid import load_fast_encoder
-    from anisdf.systems.trainer import pick_device
+    from anisdf.utils.devices import pick_device
 
     dev = pick_device(device)
     on_cuda = dev.type == "cuda"

@@ -24,7 +24,7 @@ def composite(rgb: A, alpha: A, background: A | float) -> A:
     """``rgb * alpha + background * (1 - alpha)``: an object's colour over a background (alpha in [0, 1]).
 
     The one compositing route: training targets (:class:`anisdf.data.rays.RayDataset`, random or white
-    backgrounds), RGBA images shown or saved (:mod:`anisdf.export.visualize`) and RGBA references in metrics.
+    backgrounds), RGBA images shown or saved (:mod:`anisdf.utils.images`) and RGBA references in metrics.
     Works on tensors and arrays alike; ``alpha`` broadcasts over the colour channels ([..., 1]).
     """
     return rgb * alpha + background * (1.0 - alpha)

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from anisdf.export.atomic import write_text_atomic
+from anisdf.utils.atomic import write_text_atomic
 
 _CSS = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; }

@@ -39,7 +39,6 @@ from tqdm.auto import tqdm
 
 from anisdf.errors import AnisdfError
 from anisdf.export import baked_format as fmt
-from anisdf.export.atomic import atomic_path
 from anisdf.export.sg_fit import (
     SHARPNESS_RANGE,
     Lobes,
@@ -50,6 +49,7 @@ from anisdf.export.sg_fit import (
     sample_reflections,
     tangent_frames,
 )
+from anisdf.utils.atomic import atomic_path
 
 log = logging.getLogger("anisdf")
 
@@ -572,7 +572,7 @@ def glb_bytes(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces:
 def write_asset(out: Path, baked: Baked, to_world: np.ndarray, manifest: dict) -> dict[str, int]:
     """Write model.glb (mesh moved to the dataset's frame by ``to_world``), specular_*.png, index.html and
     export.json (``manifest`` plus the file sizes) into ``out``; returns the sizes in bytes."""
-    from anisdf.export.viewer import page_html
+    from anisdf.export.web_page import page_html
 
     out.mkdir(parents=True, exist_ok=True)
     T = np.asarray(to_world, dtype=np.float64)

@@ -13,7 +13,7 @@ Texel bytes (8 bits, value / 255):
   sharpness, logarithmic: ``lambda = lo * (hi / lo) ** B`` with ``(lo, hi)`` = export.json's ``sharpness_range``;
 * ``specular_<k>_rgb.png``: RGB amplitude ``a_k``.
 
-A pixel's colour (the viewer's shader and :mod:`anisdf.export.baked_renderer` compute the same): with ``n`` the
+A pixel's colour (the viewer's shader and :mod:`anisdf.export.reference_renderer` compute the same): with ``n`` the
 normalised interpolated vertex normal, ``d`` the unit view direction and ``r = d - 2 (d . n) n``, it is ``D`` blended
 bilinearly from the 4 diffuse texels around the pixel's UV, plus ``sum_k a_k exp(lambda_k (mu_k . r - 1))`` evaluated
 at each of the 4 lobe texels around it and blended bilinearly (the shading is blended, not the lobe parameters),

@@ -20,7 +20,7 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from anisdf.errors import AnisdfError
-from anisdf.export.atomic import atomic_path
+from anisdf.utils.atomic import atomic_path
 
 MeshFormat = Literal["ply", "obj", "glb"]
 _CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]

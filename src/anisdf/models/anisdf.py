@@ -153,7 +153,7 @@ class AniSDFModel(nn.Module):
                generator: torch.Generator | None, sample_share: float = 1.0) -> dict[str, Tensor]:
         """Loss dict (Eq. 18): weighted terms and their sum under ``total``. ``sample_share`` scales the weights of
         the means over samples (eikonal, curvature) in ``total``: a rank's share of all ranks' samples times their
-        number, so that averaging the ranks' gradients gives the gradient over all samples (systems/distributed)."""
+        number, so that averaging the ranks' gradients gives the gradient over all samples (training/distributed)."""
         lc = self.cfg.loss
         step = self.step_int
         terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out["rgb"], target, lc.rgb)}

@@ -3,7 +3,6 @@ extracted or an evaluation written meanwhile)."""
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -13,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from anisdf.errors import AnisdfError
+from anisdf.run_dir import RunDir
 from anisdf.viewer.server import Viewer, import_viser
 
 log = logging.getLogger("anisdf")
@@ -30,13 +30,7 @@ def _mtime(path: Path) -> float | None:
 
 def mesh_path(run: Path) -> Path | None:
     """The mesh ``extract-mesh`` wrote (named in RUN/mesh.json), else RUN/mesh.ply|obj|glb, else None."""
-    try:
-        named = run / str(json.loads((run / "mesh.json").read_text())["mesh"])
-        if named.is_file():
-            return named
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    return next((p for p in (run / "mesh.ply", run / "mesh.obj", run / "mesh.glb") if p.is_file()), None)
+    return RunDir(run).existing_mesh()
 
 
 class RunWatcher:
@@ -58,9 +52,9 @@ class RunWatcher:
         if not force and now - self._polled < POLL_SECONDS:
             return
         self._polled = now
-        from anisdf.systems.trainer import load_run
+        from anisdf.tasks.loading import load_run
 
-        ckpt = self.run / "checkpoints" / "last.pt"
+        ckpt = RunDir(self.run).checkpoint
         if self._changed("ckpt", _mtime(ckpt)) and not force:  # the first (forced) poll follows open_run's load
             try:
                 _, model, ck = load_run(self.run, self.device)
@@ -72,21 +66,17 @@ class RunWatcher:
         mesh = mesh_path(self.run)
         if self._changed("mesh", (mesh, _mtime(mesh) if mesh else None)):
             self.viewer.set_mesh(self._load_mesh(mesh) if mesh else None)
-        ev = self.run / "eval.json"
-        if self._changed("eval", _mtime(ev)) and ev.is_file():
-            try:
-                metrics = {k: v for k, v in json.loads(ev.read_text()).items() if k not in ("protocol", "per_view")}
-            except (OSError, ValueError) as e:
-                log.warning("viewer: %s is unreadable (%s)", ev, e)
+        rd = RunDir(self.run)
+        if self._changed("eval", _mtime(rd.eval_json)) and rd.eval_json.is_file():
+            content = rd.read_eval()
+            if content is None:
+                log.warning("viewer: %s is unreadable", rd.eval_json)
             else:
-                self.viewer.set_eval(metrics, sorted((self.run / "eval").glob("*.png")))
+                metrics = {k: v for k, v in content.items() if k not in ("protocol", "per_view")}
+                self.viewer.set_eval(metrics, rd.eval_panels())
 
     def _set_run_status(self, ck: dict[str, Any]) -> None:
-        status = "?"
-        try:
-            status = json.loads((self.run / "run.json").read_text()).get("status", "?")
-        except (OSError, ValueError):
-            pass
+        status = RunDir(self.run).status() or "?"
         self.viewer.set_status(step=int(ck["state"]["step"]), status=f"run {status}")
 
     def _load_mesh(self, path: Path) -> Any | None:
@@ -106,8 +96,8 @@ def open_run(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str |
     """A viewer of the run folder ``run`` with its training cameras (when the dataset is still there), mesh and
     evaluation."""
     import_viser()
-    from anisdf.systems.commands import _scene_for_run
-    from anisdf.systems.trainer import load_run, pick_device
+    from anisdf.tasks.loading import load_run, scene_for_run
+    from anisdf.utils.devices import pick_device
 
     run = Path(run)
     if not run.is_dir():
@@ -115,7 +105,7 @@ def open_run(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str |
     dev = pick_device(device or "auto")
     cfg, model, ck = load_run(run, dev)
     try:
-        scene = _scene_for_run(run, cfg, ck, split="train")
+        scene = scene_for_run(run, cfg, ck, split="train")
     except AnisdfError as e:
         log.warning("viewer: no training cameras: %s", e)
         scene = None

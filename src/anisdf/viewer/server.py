@@ -25,8 +25,8 @@ import numpy as np
 
 from anisdf.errors import AnisdfError
 from anisdf.models.anisdf import AniSDFModel
-from anisdf.systems.rendering import MAP_NAMES
-from anisdf.viewer.render import Frame, ViewCamera, render_frame
+from anisdf.models.views import MAP_NAMES
+from anisdf.viewer.frames import Frame, ViewCamera, render_frame
 
 log = logging.getLogger("anisdf")
 
@@ -173,7 +173,7 @@ class Viewer:
         from PIL import Image
         from viser import transforms
 
-        from anisdf.export.visualize import to_rgb_uint8
+        from anisdf.utils.images import to_rgb_uint8
 
         cams = scene.cameras
         idx = list(scene.splits.get("train") or range(len(cams)))

@@ -9,7 +9,7 @@ A run folder holds ``config.yaml``, ``run.json`` (dataset path), ``checkpoints/l
 ``val/`` (validation images) and ``log.jsonl``. Checkpoints are atomic and carry every random state, so
 ``--resume`` continues exactly where an uninterrupted run would be (same seed, same result on CPU).
 
-Under torchrun (``dist``, systems/distributed.py) each rank draws its own rays and the gradients are averaged; only
+Under torchrun (``dist``, training/distributed.py) each rank draws its own rays and the gradients are averaged; only
 rank 0 writes the run folder. A resume may change the number of ranks.
 """
 
@@ -27,19 +27,18 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from torch.nn.utils import parametrize
 
-from anisdf.config import Config, config_from_dict
+from anisdf.config import Config
 from anisdf.data.rays import RayBatch, RayDataset, eval_background
 from anisdf.data.scene import Scene
-from anisdf.errors import AnisdfError, TrainingDiverged
+from anisdf.errors import TrainingDiverged
 from anisdf.eval.metrics import psnr_from_mse
-from anisdf.export.atomic import write_text_atomic
 from anisdf.models.anisdf import AniSDFModel
-from anisdf.systems.checkpoint import atomic_save, load_checkpoint
-from anisdf.systems.cpu_threads import ThreadTuner
-from anisdf.systems.distributed import Dist, rank_seed
+from anisdf.run_dir import RunDir
+from anisdf.training.checkpoint import atomic_save
+from anisdf.training.cpu_threads import ThreadTuner
+from anisdf.training.distributed import Dist, rank_seed
 
 log = logging.getLogger("anisdf")
 
@@ -47,19 +46,6 @@ LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "
 """Every name AniSDFModel.losses can return."""
 
 
-def pick_device(name: str) -> torch.device:
-    """``auto`` (CUDA if there is one), ``cpu`` or ``cuda[:N]``; an AnisdfError naming ``--device`` otherwise."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise AnisdfError(f"--device {name!r}: expected auto, cpu or cuda[:N]") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise AnisdfError(f"--device {name}: CUDA is not available in this torch build")
-    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
-        raise AnisdfError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
-    return device
 
 
 def lr_factor(step: int, cfg: Config) -> float:
@@ -90,6 +76,7 @@ class Trainer:
     def __init__(self, cfg: Config, scene: Scene, out_dir: Path, device: torch.device, progress: bool = True,
                  dist: Dist | None = None):
         self.cfg, self.scene, self.out = cfg, scene, Path(out_dir)
+        self.run_dir = RunDir(self.out)
         self.device = device
         self.dist = dist
         self.world_size = 1 if dist is None else dist.world_size
@@ -128,7 +115,7 @@ class Trainer:
         self.state = TrainState(n_rays=cfg.renderer.init_rays)
         self.train_data = RayDataset(scene, cfg.data.train_split, device=device, background=cfg.data.background)
         self.clock = time.perf_counter  # the time budget's clock (tests replace it)
-        self.ckpt_path = self.out / "checkpoints" / "last.pt"
+        self.ckpt_path = self.run_dir.checkpoint
         self._writer = None
         self.step_hooks: list[Callable[[Trainer, dict[str, float]], None]] = []
         """Called after every step with its stats; their time is not training time (the live viewer renders there)."""
@@ -215,21 +202,21 @@ class Trainer:
         if not self.is_main:
             return
         self.out.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(self.out / "config.yaml", yaml.safe_dump(self.cfg.to_dict(), sort_keys=False))
-        write_text_atomic(self.out / "run.json", json.dumps({
+        self.run_dir.write_config(self.cfg.to_dict())
+        self.run_dir.write_info({
             "data": str(Path(self.scene.root).resolve()), "format": self.scene.format,
             "preset": self.cfg.preset, "to_world": np.asarray(self.scene.to_world).tolist(),
             "status": status, "step": self.state.step, "schedule_step": self.state.schedule_step,
             "schedule": "time" if self.budget_seconds > 0 else "steps", "train_seconds": self.state.train_seconds,
             "world_size": self.world_size,
-        }, indent=2))
+        })
 
     @property
     def writer(self):
         if self._writer is None:
             from torch.utils.tensorboard import SummaryWriter
 
-            self._writer = SummaryWriter(str(self.out / "tb"))
+            self._writer = SummaryWriter(str(self.run_dir.tensorboard))
         return self._writer
 
     # ----------------------------------------------------------------------------------------- step
@@ -315,13 +302,13 @@ class Trainer:
 
     @torch.no_grad()
     def validate(self) -> float:
-        from anisdf.systems.rendering import render_view, save_panel
+        from anisdf.models.views import render_view, save_panel
 
         split = "test" if self.scene.splits.get("test") else "train"
         data = RayDataset(self.scene, split, device=self.device, background=eval_background(self.scene),
                           downscale=self.cfg.train.val_downscale)
         res = render_view(self.model, data, 0, self.scene, self.cfg.renderer.eval_chunk_rays)
-        path = self.out / "val" / f"step_{self.state.step:06d}.png"
+        path = self.run_dir.validation_image(self.state.step)
         save_panel(path, res)
         self.writer.add_scalar("val/psnr", res["psnr"], self.state.step)
         return res["psnr"]
@@ -355,7 +342,7 @@ class Trainer:
         status = "done"
         last_stats: dict[str, float] = {}
         sps_window: list[tuple[float, int]] = []
-        logf = (self.out / "log.jsonl").open("a") if self.is_main else open(os.devnull, "w")  # noqa: SIM115
+        logf = self.run_dir.log.open("a") if self.is_main else open(os.devnull, "w")  # noqa: SIM115
         try:
             while not self.schedule_done():
                 if max_steps and self.state.step >= max_steps:
@@ -412,17 +399,3 @@ class Trainer:
         return {"status": status, "step": self.state.step, "train_seconds": self.state.train_seconds,
                 "schedule_step": self.state.schedule_step, "checkpoint": str(self.ckpt_path),
                 **{k: last_stats[k] for k in ("psnr", "total") if k in last_stats}}
-
-
-def load_run(run_dir: Path, device: torch.device | str = "cpu") -> tuple[Config, AniSDFModel, dict[str, Any]]:
-    """Model and metadata of a trained run (for rendering, export and evaluation)."""
-    run_dir = Path(run_dir)
-    torch.set_flush_denormal(True)
-    ck = load_checkpoint(run_dir / "checkpoints" / "last.pt", map_location=device)
-    cfg = config_from_dict(ck["config"])
-    learn_bg = any(k.startswith("background.") for k in ck["model"])
-    model = AniSDFModel(cfg, learn_background=learn_bg).to(device)
-    model.load_state_dict(ck["model"])
-    model.set_step(ck["state"]["step"])
-    model.eval()
-    return cfg, model, ck

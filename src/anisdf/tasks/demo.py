@@ -20,12 +20,16 @@ def demo_scene() -> Path:
 
 
 def run_demo(out: Path, minutes: float = 4.0, device: str | None = None) -> dict:
-    from anisdf.systems.commands import evaluate, render, train
+    from anisdf.run_dir import RunDir
+    from anisdf.tasks.evaluate import evaluate
+    from anisdf.tasks.render import render
+    from anisdf.tasks.train import train
 
     out = Path(out)
     data = demo_scene()
     run = out / "run"
-    resume = (run / "checkpoints" / "last.pt").is_file()
+    rd = RunDir(run)
+    resume = rd.has_checkpoint()
     log.info("demo: training on the bundled glossy bunny (%s) for %.1f minutes, preset cpu-quick -> %s",
              data, minutes, run)
     train(data, run, preset=None if resume else "cpu-quick", overrides=None if resume else DEMO_OVERRIDES,
@@ -33,12 +37,12 @@ def run_demo(out: Path, minutes: float = 4.0, device: str | None = None) -> dict
     metrics = evaluate(run, gt_mesh=data / "gt_mesh.ply", chamfer_points=200_000, mesh_resolution=256,
                        re_extract=True, device=device)  # a mesh of this run's last step, written beside it
     renders = render(run, split="test", video=True, max_views=4, device=device, n_video_frames=36)
-    report = run / "report.md"
+    report = rd.report_md
     print("\n" + report.read_text().split("## Per view")[0].strip())
     print("\nanisdf demo finished")
     print(f"  test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.3f}, normal MAE "
           f"{metrics.get('normal_mae_deg', float('nan')):.2f} deg, Chamfer {metrics.get('chamfer', float('nan')):.4f}")
-    print(f"  mesh:    {run / 'mesh.ply'}")
-    print(f"  renders: {renders} (rgb, normal, c_view, c_ref, weight w) and {run / 'renders' / 'orbit.mp4'}")
-    print(f"  report:  {run / 'report.html'}")
+    print(f"  mesh:    {rd.mesh('ply')}")
+    print(f"  renders: {renders} (rgb, normal, c_view, c_ref, weight w) and {rd.orbit_video}")
+    print(f"  report:  {rd.report_html}")
     return metrics

@@ -43,7 +43,7 @@ def map_to_image(maps: dict[str, np.ndarray], name: str) -> np.ndarray:
     """One of :data:`MAP_NAMES` of :func:`render_rays_to_maps`'s output as a uint8 RGB picture, as ``anisdf render``
     writes it: normals and depth outside the object (opacity <= 0.5) white, scalars in viridis. KeyError when the
     model has no such map (c_view, c_ref and w belong to the blended appearance)."""
-    from anisdf.export.visualize import depth_to_image, normal_to_image, scalar_to_image, to_uint8
+    from anisdf.utils.images import depth_to_image, normal_to_image, scalar_to_image, to_uint8
 
     fg = maps["opacity"][..., 0] > 0.5
     if name in ("rgb", "c_view", "c_ref"):
@@ -68,7 +68,7 @@ def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chun
 
 def panel(res: dict) -> np.ndarray:
     """Side-by-side picture: ground truth, render, normals, and the blend maps when present."""
-    from anisdf.export.visualize import (
+    from anisdf.utils.images import (
         depth_to_image,
         hstack_labeled,
         normal_to_image,
@@ -92,6 +92,6 @@ def panel(res: dict) -> np.ndarray:
 
 
 def save_panel(path: Path, res: dict) -> None:
-    from anisdf.export.visualize import save_image
+    from anisdf.utils.images import save_image
 
     save_image(path, panel(res))

@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from anisdf.errors import AnisdfError
-from anisdf.export.atomic import atomic_path
-from anisdf.export.visualize import to_rgb_uint8
+from anisdf.utils.atomic import atomic_path
+from anisdf.utils.images import to_rgb_uint8
 
 _UP = {
     "x": (1.0, 0.0, 0.0),

@@ -13,7 +13,7 @@ and optionally ``max_steps``, ``max_views`` (test views evaluated, 0: all), ``me
 it when it holds a checkpoint), extracts DIR/NAME/mesh.ply and evaluates it into DIR/NAME/eval.json (the Chamfer
 distance against DATA/gt_mesh.ply when the scene has one). DIR/batch.json lists every job with its status, attempts
 and figures, rewritten atomically as each job ends; a rerun skips the jobs already done. Jobs run one by one here,
-or side by side on Ray (systems/cluster.py).
+or side by side on Ray (orchestration/cluster.py).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ import yaml
 
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS
-from anisdf.export.atomic import write_text_atomic
-from anisdf.systems.cluster import Task, read_attempt, require_ray, run_tasks, train_or_resume
+from anisdf.orchestration.cluster import Task, read_attempt, require_ray, run_tasks, train_or_resume
+from anisdf.utils.atomic import write_text_atomic
 
 log = logging.getLogger("anisdf")
 
@@ -110,7 +110,8 @@ def load_jobs(path: Path) -> list[Job]:
 
 def run_job(job: dict[str, Any], run: str, device: str | None = None, progress: bool = False) -> dict[str, Any]:
     """Train (or resume), mesh and evaluate one job into ``run``; its figures (what batch.json lists)."""
-    from anisdf.systems import commands
+    from anisdf.tasks.evaluate import evaluate
+    from anisdf.tasks.mesh import extract_mesh
 
     j, run_dir = Job(**job), Path(run)
     t0 = time.perf_counter()
@@ -118,10 +119,10 @@ def run_job(job: dict[str, Any], run: str, device: str | None = None, progress: 
         train_or_resume(Path(j.data), run_dir, j.preset, list(j.overrides), j.minutes, j.max_steps, device, progress)
     except TrainingDiverged as e:
         return {"status": "diverged", "error": str(e)}
-    mesh = commands.extract_mesh(run_dir, resolution=j.mesh_resolution, device=device, progress=progress,
+    mesh = extract_mesh(run_dir, resolution=j.mesh_resolution, device=device, progress=progress,
                                  written_by="batch")
     gt = Path(j.data) / "gt_mesh.ply"
-    metrics = commands.evaluate(run_dir, max_views=j.max_views, gt_mesh=gt if gt.is_file() else None, device=device,
+    metrics = evaluate(run_dir, max_views=j.max_views, gt_mesh=gt if gt.is_file() else None, device=device,
                                 chamfer_points=j.chamfer_points, progress=progress)
     return {"status": "done", **{m: metrics.get(m) for m in METRICS}, "steps": metrics["steps"],
             "train_seconds": round(metrics["train_seconds"], 1), "mesh": str(mesh),

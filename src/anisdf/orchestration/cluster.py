@@ -27,7 +27,7 @@ from typing import Any
 import torch
 
 from anisdf.errors import AnisdfError
-from anisdf.export.atomic import write_text_atomic
+from anisdf.run_dir import RunDir
 
 log = logging.getLogger("anisdf")
 
@@ -42,7 +42,7 @@ LOCAL = "local"
 
 def machine_info(device: str | None = None) -> dict[str, Any]:
     """CPU model, GPU name (when CUDA is used), torch version and thread count of this machine."""
-    from anisdf.systems.trainer import pick_device
+    from anisdf.utils.devices import pick_device
 
     cpu = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
@@ -79,15 +79,15 @@ def train_or_resume(data: Path, run: Path, preset: str | None, overrides: list[s
     """Train ``run`` until its schedule is done, resuming it when it holds a checkpoint (a rerun, or a task run again
     after its worker died); a run already done is left as it is. Returns the status: done, diverged; an interrupted
     run raises KeyboardInterrupt, one that ended otherwise an AnisdfError."""
-    from anisdf.systems import commands
+    from anisdf.tasks import train as train_task
 
     status = read_status(run)
     if status == "done":
         return status
-    resume = (run / "checkpoints" / "last.pt").is_file()
+    resume = RunDir(run).has_checkpoint()
     if resume:
         log.info("  resuming the unfinished run %s (%s)", run, status)
-    summary = commands.train(data, run, preset=None if resume else preset, overrides=None if resume else overrides,
+    summary = train_task.train(data, run, preset=None if resume else preset, overrides=None if resume else overrides,
                              max_steps=max_steps, max_minutes=None if resume else max_minutes, device=device,
                              resume=resume, progress=progress)
     status = summary["status"]
@@ -99,12 +99,11 @@ def train_or_resume(data: Path, run: Path, preset: str | None, overrides: list[s
 
 
 def read_status(run: Path) -> str | None:
-    info = run / "run.json"
-    return json.loads(info.read_text()).get("status") if info.is_file() else None
+    return RunDir(run).status()
 
 
 def read_attempt(run: Path) -> dict[str, Any]:
-    path = run / "job.json"
+    path = RunDir(run).job
     try:
         return json.loads(path.read_text()) if path.is_file() else {}
     except json.JSONDecodeError:
@@ -127,7 +126,7 @@ def attempt(fn: Callable[..., dict[str, Any]], run: Path, kwargs: dict[str, Any]
 
         m = machine_info()
         info["device"] = m["gpu"] or m["cpu"]
-    write_text_atomic(run / "job.json", json.dumps(info, indent=2))
+    RunDir(run).write_json(RunDir(run).job, info)
     threads = torch.get_num_threads()
     if cpus:
         torch.set_num_threads(cpus)
@@ -233,7 +232,7 @@ def progress_line(run: Path) -> str:
     """Where a run stands, from its log.jsonl and job.json: 'step 120 psnr 24.31 (attempt 2 on host)'."""
     where = read_attempt(run)
     tail = f" (attempt {where['attempt']} on {where.get('host')})" if where else ""
-    log_path = run / "log.jsonl"
+    log_path = RunDir(run).log
     if not log_path.is_file():
         return "starting" + tail
     lines = log_path.read_text().strip().splitlines()

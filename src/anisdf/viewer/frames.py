@@ -1,4 +1,4 @@
-"""The browser's camera rendered by the project's own renderer (:func:`anisdf.systems.rendering.render_rays_to_maps`).
+"""The browser's camera rendered by the project's own renderer (:func:`anisdf.models.views.render_rays_to_maps`).
 
 viser reports a client's camera in the scene's frame (here anisdf's normalised frame) with OpenCV axes, as anisdf's
 :class:`~anisdf.data.cameras.Cameras` take them, a vertical field of view and the canvas' aspect ratio.
@@ -15,7 +15,7 @@ import torch
 
 from anisdf.data.cameras import Cameras
 from anisdf.models.anisdf import AniSDFModel
-from anisdf.systems.rendering import map_to_image, render_rays_to_maps
+from anisdf.models.views import map_to_image, render_rays_to_maps
 
 FAR = 1000.0
 """Depth given to empty pixels, so that scene elements behind them (frustums, the mesh) stay visible."""

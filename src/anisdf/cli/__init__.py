@@ -152,7 +152,7 @@ def _torchrun(nproc: int, argv: list[str]) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from anisdf.systems.commands import train
+    from anisdf.tasks.train import train
 
     if not args.viewer and (args.port is not None or args.host != "127.0.0.1"):
         raise AnisdfError("--port and --host are the viewer's: add --viewer")
@@ -178,7 +178,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_extract_mesh(args: argparse.Namespace) -> int:
-    from anisdf.systems.commands import extract_mesh
+    from anisdf.tasks.mesh import extract_mesh
 
     path = extract_mesh(Path(args.run), resolution=args.resolution, fmt=args.format, device=args.device,
                         remove_floaters=args.remove_floaters, remove_inner=args.remove_inner)
@@ -187,7 +187,7 @@ def cmd_extract_mesh(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from anisdf.systems.commands import render
+    from anisdf.tasks.render import render
 
     out = render(Path(args.run), split=args.split, video=args.video, max_views=args.max_views,
                  downscale=args.downscale, device=args.device)
@@ -196,7 +196,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from anisdf.systems.commands import evaluate
+    from anisdf.tasks.evaluate import evaluate
 
     metrics = evaluate(Path(args.run), split=args.split, max_views=args.max_views,
                        gt_mesh=Path(args.gt_mesh) if args.gt_mesh else None, device=args.device,
@@ -210,7 +210,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from anisdf.systems.commands import export
+    from anisdf.tasks.export import export
 
     manifest = export(Path(args.run), Path(args.out), faces=args.faces, texture=args.texture,
                       specular_texture=args.specular_texture, lobes=args.lobes, directions=args.directions,
@@ -258,7 +258,7 @@ def cmd_process_data(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from anisdf.systems.demo import run_demo
+    from anisdf.tasks.demo import run_demo
 
     run_demo(Path(args.out), minutes=args.minutes, device=args.device)
     return 0
@@ -290,7 +290,7 @@ _REPRODUCE_DEFAULTS = {"max_views": 0, "mesh_resolution": 512, "chamfer_points":
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
     from anisdf.errors import AnisdfError
-    from anisdf.systems.reproduce import reproduce
+    from anisdf.orchestration.reproduce import reproduce
 
     try:
         seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else None
@@ -307,7 +307,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def cmd_batch(args: argparse.Namespace) -> int:
-    from anisdf.systems.batch import run_batch
+    from anisdf.orchestration.batch import run_batch
 
     result = run_batch(Path(args.jobs), Path(args.out), ray=args.ray, device=args.device,
                        progress=not args.no_progress)

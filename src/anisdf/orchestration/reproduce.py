@@ -2,10 +2,10 @@
 paper's, in OUT/reproduce.json and OUT/reproduce.md.
 
 Each (scene, configuration, seed) is one run folder, ``OUT/<scene>/<config>`` (``-seed<s>`` added for seeds other
-than 0), trained with :func:`anisdf.systems.commands.train` and scored with :func:`~anisdf.systems.commands.evaluate`.
+than 0), trained with :func:`anisdf.tasks.train.train` and scored with :func:`~anisdf.tasks.evaluate.evaluate`.
 A call resumes where the previous one stopped: rows already in reproduce.json are kept, an unfinished run is
 continued with ``--resume``, and reproduce.json (written atomically) and reproduce.md are rewritten after each row.
-With ``ray`` the runs go to a Ray cluster side by side (systems/cluster.py); the rows keep the table's order.
+With ``ray`` the runs go to a Ray cluster side by side (orchestration/cluster.py); the rows keep the table's order.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from typing import Any
 
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS, PaperTable, find_scenes, get_table
-from anisdf.export.atomic import write_text_atomic
-from anisdf.systems.cluster import machine_info
+from anisdf.orchestration.cluster import machine_info
+from anisdf.utils.atomic import write_text_atomic
 
 log = logging.getLogger("anisdf")
 
@@ -74,7 +74,7 @@ def _dtu_chamfer(run: Path, scene_dir: Path, scene: str, dtu_eval: Path | None,
     missing = [str(p) for p in needed if not p.is_file()]
     if missing:
         return None, f"DTU Chamfer not measured: official evaluation files missing ({', '.join(missing)}; --dtu-eval)"
-    from anisdf.systems.commands import extract_mesh
+    from anisdf.tasks.mesh import extract_mesh
 
     mesh = run / "mesh.ply"
     if not mesh.is_file():
@@ -86,8 +86,8 @@ def _dtu_chamfer(run: Path, scene_dir: Path, scene: str, dtu_eval: Path | None,
 def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], table: PaperTable, scene: str,
                     max_minutes: float | None, max_steps: int | None, device: str | None, progress: bool,
                     eval_opts: dict[str, Any], dtu_eval: Path | None) -> dict[str, Any]:
-    from anisdf.systems.cluster import train_or_resume
-    from anisdf.systems.commands import evaluate
+    from anisdf.orchestration.cluster import train_or_resume
+    from anisdf.tasks.evaluate import evaluate
 
     notes: list[str] = []
     try:
@@ -129,7 +129,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
     (``local``, ``auto`` or an address) runs them on Ray, ``cpus_per_run`` threads each (and CPUs asked of Ray)."""
     table = get_table(table_name)
     if ray is not None:
-        from anisdf.systems.cluster import require_ray
+        from anisdf.orchestration.cluster import require_ray
 
         require_ray()
     if scale not in SCALES:
@@ -165,7 +165,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
     plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
     _write(out, table, result)
     eval_opts = {"max_views": max_views, "mesh_resolution": mesh_resolution, "chamfer_points": chamfer_points}
-    from anisdf.systems.cluster import Task, run_tasks
+    from anisdf.orchestration.cluster import Task, run_tasks
 
     tasks: list[Task] = []
     meta: dict[str, tuple[int, str, str, int]] = {}

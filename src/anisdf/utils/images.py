@@ -14,7 +14,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from anisdf.data.images import composite
-from anisdf.export.atomic import atomic_path
+from anisdf.utils.atomic import atomic_path
 
 ArrayLike = np.ndarray | torch.Tensor
 

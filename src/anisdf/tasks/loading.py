@@ -1,0 +1,59 @@
+"""Opening a trained run: its model, its dataset in the model's frame, its cameras in the dataset's frame."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from anisdf.run_dir import RunDir
+
+log = logging.getLogger("anisdf")
+
+
+def load_run(run: Path, device: torch.device | str = "cpu"):
+    """Config, model (eval mode, at the checkpoint's step) and checkpoint dict of a trained run."""
+    from anisdf.config import config_from_dict
+    from anisdf.models.anisdf import AniSDFModel
+    from anisdf.training.checkpoint import load_checkpoint
+
+    torch.set_flush_denormal(True)
+    ck = load_checkpoint(RunDir(run).checkpoint, map_location=device)
+    cfg = config_from_dict(ck["config"])
+    learn_bg = any(k.startswith("background.") for k in ck["model"])
+    model = AniSDFModel(cfg, learn_background=learn_bg).to(device)
+    model.load_state_dict(ck["model"])
+    model.set_step(ck["state"]["step"])
+    model.eval()
+    return cfg, model, ck
+
+
+def scene_for_run(run: Path, cfg, ck: dict[str, Any], downscale: float | None = None, split: str | None = None):
+    """The run's dataset in the frame the model was trained in (the checkpoint's normalisation), at the training
+    resolution or at ``downscale``, every view or only ``split``'s."""
+    from anisdf.data.dataparsers import load_scene
+
+    return load_scene(RunDir(run).data_path(ck), downscale=cfg.data.downscale if downscale is None else downscale,
+                      max_images=cfg.data.max_images if split in (None, "train") else 0,
+                      images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]))
+
+
+def dataset_camera(scene, i: int, ck: dict[str, Any]):
+    """Camera ``i`` of ``scene`` in the dataset's frame (where baked assets live), as the reference renderer takes
+    it."""
+    from anisdf.export.reference_renderer import PinholeCamera
+
+    T = np.asarray(ck["to_world"], dtype=np.float64)
+    cams = scene.cameras
+    c2w = np.eye(4)
+    c2w[:3, :4] = cams.c2w[i].double().cpu().numpy()
+    c2w = T @ c2w
+    c2w[:3, :3] /= np.cbrt(np.linalg.det(T[:3, :3]))
+    dist = None if cams.distortion is None else cams.distortion[i].double().cpu().numpy()
+    return PinholeCamera(c2w, float(cams.fx[i]), float(cams.fy[i]), float(cams.cx[i]), float(cams.cy[i]),
+                         cams.width, cams.height, dist)
+
+

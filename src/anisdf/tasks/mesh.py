@@ -1,0 +1,89 @@
+"""Extracting a run's mesh (marching cubes on the SDF) and choosing the mesh that eval scores."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from anisdf.errors import AnisdfError
+from anisdf.run_dir import RunDir
+
+log = logging.getLogger("anisdf")
+
+FLOATER_MIN_FRACTION = 0.01
+"""``remove_floaters``: components under this fraction of the largest one's face count are dropped."""
+MESH_DEFAULTS: dict[str, Any] = {"resolution": 512, "remove_floaters": False, "remove_inner": False}
+"""What ``extract-mesh`` and ``eval`` use unless told otherwise: the mesh as marching cubes found it, not cleaned."""
+
+
+def extract_mesh(run: Path, resolution: int = 512, fmt: str = "ply", device: str | None = None,
+                 remove_floaters: bool = False, remove_inner: bool = False, progress: bool = True,
+                 written_by: str = "extract-mesh") -> Path:
+    """Marching cubes on the SDF, vertex colours from the view branch, written in the dataset's frame as
+    RUN/mesh.<fmt>, with its settings in RUN/mesh.json (which ``eval`` reads). Not cleaned unless asked:
+    ``remove_floaters`` drops small disconnected pieces, ``remove_inner`` the shells around pockets enclosed inside
+    the object (docs/evaluation.md)."""
+    from anisdf.export.mesh import color_vertices, save_mesh, to_world
+    from anisdf.export.mesh import extract_mesh as mc
+    from anisdf.export.mesh import remove_floaters as drop_floaters
+    from anisdf.tasks.loading import load_run
+    from anisdf.utils.devices import pick_device
+
+    dev = pick_device(device or "auto")
+    cfg, model, ck = load_run(run, dev)
+    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress,
+              keep_inner=not remove_inner)
+    if remove_floaters:
+        mesh = drop_floaters(mesh, min_fraction=FLOATER_MIN_FRACTION)
+    mesh = color_vertices(mesh, model.diffuse_color, device=dev)
+    mesh = to_world(mesh, np.asarray(ck["to_world"], dtype=np.float64))
+    rd = RunDir(run)
+    path = rd.mesh(fmt)
+    save_mesh(mesh, path, fmt)
+    info = {"mesh": path.name, "written_by": written_by, "step": int(ck["state"]["step"]),
+            "resolution": int(resolution), "remove_floaters": bool(remove_floaters),
+            "floater_min_fraction": FLOATER_MIN_FRACTION if remove_floaters else None,
+            "remove_inner": bool(remove_inner), "two_pass": True, "margin": 0.1, "frame": "dataset",
+            "vertices": len(mesh.vertices), "faces": len(mesh.faces)}
+    rd.write_mesh_info(info)
+    log.info("mesh: %d vertices, %d faces -> %s (%s)", len(mesh.vertices), len(mesh.faces), path,
+             describe_mesh(info))
+    return path
+
+
+def describe_mesh(info: dict[str, Any]) -> str:
+    return (f"resolution {info['resolution']}, floaters {'removed' if info['remove_floaters'] else 'kept'}, "
+            f"inner shells {'removed' if info['remove_inner'] else 'kept'}, step {info['step']}")
+
+
+def mesh_for_eval(run: Path, step: int, requested: dict[str, Any], re_extract: bool) -> dict[str, Any] | None:
+    """The mesh ``eval`` scores: the one ``extract-mesh`` wrote (RUN/mesh.json) when there is one, else None (extract
+    one). Raises when that mesh does not fit (another step, other settings asked for, no sidecar) and
+    ``re_extract`` is off, rather than scoring or replacing it silently."""
+    if re_extract:
+        return None
+    rd = RunDir(run)
+    info = rd.read_mesh_info()
+    if info is not None:
+        mesh_path = run / str(info["mesh"])
+        if not mesh_path.is_file():
+            raise AnisdfError(f"{rd.mesh_info} names {info['mesh']}, which is missing; run extract-mesh or pass "
+                              "--re-extract")
+        if info.get("step") != step:
+            raise AnisdfError(f"{mesh_path} was extracted at step {info.get('step')} but the checkpoint is at step "
+                              f"{step}; run extract-mesh again or pass --re-extract")
+        for key, value in requested.items():
+            if value is not None and info.get(key) != value:
+                raise AnisdfError(f"{mesh_path} was extracted with {key}={info.get(key)} ({rd.mesh_info.name}), not "
+                                  f"{value}; pass --re-extract to replace it, or drop the option to score it")
+        return {**info, "path": str(mesh_path)}
+    old = rd.existing_mesh()
+    if old is not None:
+        raise AnisdfError(f"{old} has no {rd.mesh_info.name} (an older anisdf wrote it; its settings are unknown); "
+                          "pass --re-extract to replace it")
+    return None
+
+
