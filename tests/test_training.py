@@ -305,7 +305,7 @@ def test_mixed_precision_step_trains_and_keeps_the_sdf_in_float32(toy_scene, tmp
         sdf, feat = tr.model.geometry(torch.zeros(5, 3))
         out = tr.model.render_rays(batch.origins, batch.directions, batch.background)
     assert sdf.dtype == feat.dtype == torch.float32
-    assert out["rgb"].dtype == out["opacity"].dtype == torch.float32
+    assert out.rgb.dtype == out.opacity.dtype == torch.float32
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.nn.utils import parametrize
 
 from anisdf.config import Config
 from anisdf.fields.background_field import BackgroundNeRF, EnvironmentBackground
@@ -24,6 +28,49 @@ from anisdf.model_components.neus_renderer import (
 )
 from anisdf.model_components.occupancy_grid import OccupancyGrid
 from anisdf.model_components.ray_marching import march
+
+
+@dataclass
+class TrainingSamples:
+    """Per-sample tensors of a training render: what the geometric losses (Eq. 14-16) read."""
+
+    x: Tensor
+    dirs: Tensor
+    grad: Tensor
+    normal: Tensor
+    weights: Tensor
+    ray_idx: Tensor
+
+
+@dataclass
+class RenderOutput:
+    """What :meth:`AniSDFModel.render_rays` computed: per-ray maps (``rgb``, ``opacity``; when not training also
+    ``depth``, ``normal``, ``c_view``, ``c_ref``, ``w``), the NeuS sharpness, the sample counts (plain ints: reading
+    them waits for no GPU) and, in training, the per-sample tensors."""
+
+    maps: dict[str, Tensor]
+    inv_s: Tensor
+    n_samples: int
+    """Samples left after the pruning pass (colour and gradients were computed for these)."""
+    n_marched: int
+    """Samples the march produced (the cheap SDF-only pruning pass ran on these)."""
+    samples: TrainingSamples | None = None
+
+    @property
+    def rgb(self) -> Tensor:
+        return self.maps["rgb"]
+
+    @property
+    def opacity(self) -> Tensor:
+        return self.maps["opacity"]
+
+
+class GridBroadcaster(Protocol):
+    """The data-parallel job (training/distributed.py) as the occupancy-grid update sees it."""
+
+    is_main: bool
+
+    def broadcast_module(self, module: nn.Module) -> None: ...
 
 
 class AniSDFModel(nn.Module):
@@ -50,8 +97,6 @@ class AniSDFModel(nn.Module):
         # the radiance heads and the opacity, eager until compile_heads() (plain attributes, not submodules)
         self.color_fn: Callable[..., dict[str, Tensor]] = self.appearance.__call__
         self.alpha_fn: Callable[..., Tensor] = neus_alpha
-        # samples of the last render_rays call, full pass and marched (plain ints: reading them waits for no GPU)
-        self.last_counts: tuple[int, int] = (0, 0)
 
     def compile_heads(self) -> None:
         """``train.compile``: ``torch.compile`` the SDF MLPs with their closed-form input gradient, the radiance
@@ -86,14 +131,26 @@ class AniSDFModel(nn.Module):
         return e if e > 0 else 0.5 * self.finest_cell()
 
     @torch.no_grad()
-    def update_grid(self, generator: torch.Generator, full: bool = False) -> float:
-        inv_s = float(self.variance())
-        return self.grid.update(self.geometry.sdf, inv_s, generator, full=full)
+    def update_grid(self, generator: torch.Generator, full: bool = False, job: GridBroadcaster | None = None) -> None:
+        """Re-evaluate the occupancy grid; in a data-parallel ``job`` rank 0 does it (drawing from the shared
+        generator) and sends the grid to every rank, so float noise between devices cannot make the grids differ."""
+        if job is None or job.is_main:
+            self.grid.update(self.geometry.sdf, float(self.variance()), generator, full=full)
+        if job is not None:
+            job.broadcast_module(self.grid)
+
+    @contextlib.contextmanager
+    def cached_weights(self) -> Iterator[None]:
+        """A training step's scope: each weight-normed SDF layer's weight is computed once (with grad) and reused
+        by every SDF query inside (the render's passes and the curvature loss's)."""
+        with parametrize.cached():
+            self.geometry.cache_weights()
+            yield
 
     # ----------------------------------------------------------------------------------------- render
     def render_rays(self, origins: Tensor, dirs: Tensor, background: Tensor, train: bool = False,
-                    generator: torch.Generator | None = None) -> dict[str, Tensor]:
-        """Render rays (NeuS, Eq. 1) and return per-ray maps plus, in training, per-sample tensors for losses."""
+                    generator: torch.Generator | None = None) -> RenderOutput:
+        """Render rays (NeuS, Eq. 1): per-ray maps, and in training the per-sample tensors the losses read."""
         n_rays = origins.shape[0]
         rc = self.cfg.renderer
         s = march(origins, dirs, self.grid, self.radius, self.step_size, rc.max_samples_per_ray,
@@ -131,11 +188,8 @@ class AniSDFModel(nn.Module):
         if not train:
             out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
             out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
-        out["inv_s"] = inv_s.detach()
-        self.last_counts = (s.n, n_marched)
-        if train:
-            out.update(_x=x, _dirs=d, _grad=grad, _normal=normal, _weights=weights, _ray_idx=s.ray_idx)
-        return out
+        samples = TrainingSamples(x, d, grad, normal, weights, s.ray_idx) if train else None
+        return RenderOutput(out, inv_s.detach(), s.n, n_marched, samples)
 
     @torch.no_grad()
     def render_image(self, origins: Tensor, dirs: Tensor, background: Tensor, chunk: int) -> dict[str, Tensor]:
@@ -143,21 +197,23 @@ class AniSDFModel(nn.Module):
         parts: dict[str, list[Tensor]] = {}
         for i in range(0, origins.shape[0], chunk):
             out = self.render_rays(origins[i : i + chunk], dirs[i : i + chunk], background[i : i + chunk])
-            for k, v in out.items():
-                if v.dim() > 0:
-                    parts.setdefault(k, []).append(v.detach())
+            for k, v in out.maps.items():
+                parts.setdefault(k, []).append(v.detach())
         return {k: torch.cat(v) for k, v in parts.items()}
 
     # ----------------------------------------------------------------------------------------- losses
-    def losses(self, out: dict[str, Tensor], target: Tensor, mask: Tensor | None,
+    def losses(self, out: RenderOutput, target: Tensor, mask: Tensor | None,
                generator: torch.Generator | None, sample_share: float = 1.0) -> dict[str, Tensor]:
         """Loss dict (Eq. 18): weighted terms and their sum under ``total``. ``sample_share`` scales the weights of
         the means over samples (eikonal, curvature) in ``total``: a rank's share of all ranks' samples times their
         number, so that averaging the ranks' gradients gives the gradient over all samples (training/distributed)."""
         lc = self.cfg.loss
         step = self.step_int
-        terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out["rgb"], target, lc.rgb)}
-        grad = out["_grad"]
+        terms: dict[str, Tensor] = {"rgb": L.rgb_loss(out.rgb, target, lc.rgb)}
+        if out.samples is None:
+            raise ValueError("losses() needs a training render (render_rays(..., train=True))")
+        smp = out.samples
+        grad = smp.grad
         if grad.shape[0] == 0:
             terms["total"] = terms["rgb"]
             return terms
@@ -167,7 +223,7 @@ class AniSDFModel(nn.Module):
             weights["eikonal"] = lc.eikonal if sample_share == 1.0 else lc.eikonal * sample_share
         curv_w = self.curvature_weight()
         if curv_w > 0:
-            x, n = out["_x"], out["_normal"]
+            x, n = smp.x, smp.normal
             k = min(x.shape[0], max(1024, int(x.shape[0] * lc.curvature_fraction)))
             dev = generator.device if generator is not None else x.device
             sel = torch.randperm(x.shape[0], generator=generator, device=dev)[:k].to(x.device)
@@ -177,14 +233,14 @@ class AniSDFModel(nn.Module):
             weights["curvature"] = curv_w if sample_share == 1.0 else curv_w * sample_share
         orient_w = _ramp(lc.orientation_start, lc.orientation, step, lc.orientation_ramp_steps)
         if orient_w > 0:
-            terms["orientation"] = L.orientation_loss(out["_weights"], out["_normal"], out["_dirs"],
-                                                      out["_ray_idx"], target.shape[0])
+            terms["orientation"] = L.orientation_loss(smp.weights, smp.normal, smp.dirs, smp.ray_idx,
+                                                      target.shape[0])
             weights["orientation"] = orient_w
         if lc.entropy > 0:
-            terms["entropy"] = L.alpha_entropy_loss(out["opacity"])
+            terms["entropy"] = L.alpha_entropy_loss(out.opacity)
             weights["entropy"] = lc.entropy
         if lc.mask > 0 and mask is not None:
-            terms["mask"] = L.mask_loss(out["opacity"], mask)
+            terms["mask"] = L.mask_loss(out.opacity, mask)
             weights["mask"] = lc.mask
         terms["total"] = sum(weights[k] * terms[k] for k in weights)
         return terms

@@ -98,16 +98,6 @@ class Dist:
             else:
                 td.broadcast(t.data, src=0)
 
-    def update_grid(self, model, generator: torch.Generator, full: bool) -> None:
-        """Rank 0 re-evaluates the occupancy grid (drawing from the shared generator) and sends it to every rank."""
-        if self.is_main:
-            model.update_grid(generator, full=full)
-        grid = model.grid
-        occ = grid.occupied.to(torch.uint8)
-        td.broadcast(occ, src=0)
-        grid.occupied.copy_(occ.bool())
-        td.broadcast(grid.n_updates, src=0)
-
     def broadcast_float(self, value: float) -> float:
         """Rank 0's ``value`` (e.g. the time spent, which the time-budget schedule reads) on every rank."""
         t = torch.tensor([value], dtype=torch.float64, device=self.device)

@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.nn.utils import parametrize
 
 from anisdf.config import Config
 from anisdf.data.rays import RayBatch, RayDataset, eval_background
@@ -233,39 +232,33 @@ class Trainer:
         rc = cfg.renderer
         if st.step % rc.grid_update_every == 0:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
-            if self.dist is None:
-                model.update_grid(self.gen, full=warm)
-            else:
-                self.dist.update_grid(model, self.gen, full=warm)
+            model.update_grid(self.gen, full=warm, job=self.dist)
         f = lr_factor(st.schedule_step, cfg)
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
         batch = self.next_batch(st.n_rays)
-        # parametrize.cached(): each weight-normed layer's weight is computed once per step instead of once per
-        # SDF query (3 queries a step); it is computed first with grad enabled, so the cached copy carries it
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_amp), parametrize.cached():
-            model.geometry.cache_weights()
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_amp), model.cached_weights():
             out = model.render_rays(batch.origins, batch.directions, batch.background, train=True,
                                     generator=self.ray_gen)
             if self.dist is None:
-                counts = model.last_counts
+                counts = (out.n_samples, out.n_marched)
                 terms = model.losses(out, batch.rgb, batch.mask, self.gen)
             else:  # per-sample means weighted by this rank's share of all ranks' samples (distributed.py)
-                counts = tuple(self.dist.sum_counts(model.last_counts))
-                share = self.world_size * model.last_counts[0] / max(counts[0], 1)
+                counts = tuple(self.dist.sum_counts((out.n_samples, out.n_marched)))
+                share = self.world_size * out.n_samples / max(counts[0], 1)
                 terms = model.losses(out, batch.rgb, batch.mask, self.ray_gen, sample_share=share)
         loss = terms["total"]
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         # every number the step reports is read back at once: on a GPU each read waits for the queue to drain
-        mse = torch.mean((out["rgb"].detach().float() - batch.rgb) ** 2)
+        mse = torch.mean((out.rgb.detach().float() - batch.rgb) ** 2)
         if self.dist is None:
             names = list(terms)
             *term_vals, mse_val, inv_s = torch.stack([terms[k].detach().float() for k in names]
-                                                     + [mse, out["inv_s"].float()]).tolist()
+                                                     + [mse, out.inv_s.float()]).tolist()
             stats = dict(zip(names, term_vals, strict=True))
         else:  # gradients and reported figures: the mean over ranks, in one all-reduce
-            stats, mse_val, inv_s = self._average_over_ranks(terms, mse, out["inv_s"])
+            stats, mse_val, inv_s = self._average_over_ranks(terms, mse, out.inv_s)
         value = stats["total"]
         if not math.isfinite(value) or (st.step > 100 and st.loss_ema > 0
                                         and value > cfg.loss.explode_factor * st.loss_ema):
