@@ -4,7 +4,8 @@ Backends side by side, each importing only what lies below it:
 
 * :mod:`.reference`: plain PyTorch, the definition every fast backend is tested against (imports none of them);
 * :mod:`.ops`: the autograd Functions that drive a fast backend's three entry points;
-* :mod:`.cpu_kernel`: the compiled C++ extension (``anisdf/kernels/hashgrid_cpu.cpp``);
+* :mod:`.cpu_kernel`: the compiled C++ extension (``anisdf/kernels/hashgrid_cpu.cpp``), built under
+  :mod:`.build_lock` (a bounded wait for a live build, no wait on a killed one);
 * :mod:`.triton`: the CUDA kernels in Triton;
 * :mod:`.dispatch`: picks one per device, and the learnable :class:`HashGrid` module.
 """

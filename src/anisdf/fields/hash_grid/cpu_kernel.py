@@ -1,10 +1,14 @@
 """The compiled CPU backend: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``).
 
-Built with ``torch.utils.cpp_extension.load`` on first use, once per process, into torch's extension cache
-(``~/.cache/torch_extensions/...``) or under ``$ANISDF_KERNEL_DIR``. Measured on 2 shared cores
-(``benchmarks/bench_encoding.py``, 2^16-2^18 points, 10-16 levels, log2 T 17-19): forward 14-30x,
-forward + backward 8-18x, an eikonal step 6-13x the reference. A build that fails logs one warning and
-:func:`kernel_module` returns ``None`` from then on.
+Built with ``torch.utils.cpp_extension.load`` on first use, once per process, under ``$ANISDF_KERNEL_DIR``, else
+torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), which every checkout
+and environment on the machine shares: the build's name carries a hash of the source, the flags, the torch
+version and the Python ABI, so no two of them load or rebuild each other's build. A build runs under
+:func:`.build_lock.build_lock`: a build by another live process is waited for (bounded), a killed build's lock is
+cleared instead of waited on for ever. Measured on 2 shared cores (``benchmarks/encoding_speed.py``, 2^16-2^18
+points, 10-16 levels, log2 T 17-19): forward 14-30x, forward + backward 8-18x, an eikonal step 6-13x the
+reference. A build that fails (or waits too long) logs one warning and :func:`kernel_module` returns ``None``
+from then on.
 """
 
 from __future__ import annotations
@@ -12,12 +16,18 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import platform
 import shutil
+import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import torch
+
+from anisdf.fields.hash_grid.build_lock import build_lock, wait_seconds
 from anisdf.fields.hash_grid.ops import kernels_disabled, short_error
 
 log = logging.getLogger(__name__)
@@ -54,34 +64,59 @@ def _compile_flags() -> tuple[list[str], str]:
     return flags, "generic"
 
 
-def _build() -> ModuleType:
+def torch_identity() -> str:
+    """The installed torch: version and source commit."""
+    return f"{torch.__version__} {getattr(torch.version, 'git_version', '')}".strip()
+
+
+def python_abi() -> str:
+    """The interpreter's extension ABI, e.g. ``cpython-311-x86_64`` (``sys.abiflags`` where there are any)."""
+    return f"{sys.implementation.cache_tag}{getattr(sys, 'abiflags', '')}-{platform.machine()}"
+
+
+def extension_name(source: bytes, flags: Sequence[str], tag: str, torch_version: str | None = None,
+                   abi: str | None = None) -> str:
+    """The build's name in the shared extension cache: a hash of everything the compiled module depends on.
+
+    Checkouts with other kernel sources (branches, versions), other torch builds or other Pythons sharing one
+    cache never load or rebuild each other's build (torch itself only versions a name within a process).
+    """
+    key = b"\0".join([source, " ".join(flags).encode(), (torch_version or torch_identity()).encode(),
+                       (abi or python_abi()).encode()])
+    return f"{_EXT_NAME}_{tag}_{hashlib.sha256(key).hexdigest()[:12]}"
+
+
+def build_directory(name: str) -> Path:
+    """``$ANISDF_KERNEL_DIR/<name>``, else ``<torch's extension cache>/<name>``."""
+    root = os.environ.get("ANISDF_KERNEL_DIR") or os.environ.get("TORCH_EXTENSIONS_DIR")
+    if not root:
+        from torch.utils.cpp_extension import get_default_build_root
+
+        root = get_default_build_root()
+    return Path(root).expanduser() / name
+
+
+def _load(name: str, flags: list[str], build_dir: Path) -> ModuleType:
     from torch.utils import cpp_extension
 
+    return cpp_extension.load(name=name, sources=[str(SOURCE)], extra_cflags=flags, extra_ldflags=["-fopenmp"],
+                              build_directory=str(build_dir), verbose=False)
+
+
+def _build() -> ModuleType:
     cxx = os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         raise RuntimeError(f"no C++ compiler ({cxx}) on PATH")
     if not SOURCE.is_file():
         raise RuntimeError(f"kernel source {SOURCE} is missing")
     flags, tag = _compile_flags()
-    # The source's hash in the name: checkouts with different kernel sources (branches, versions) sharing one
-    # extension cache never load or rebuild each other's build (torch only versions a name within a process).
-    digest = hashlib.sha256(SOURCE.read_bytes() + " ".join(flags).encode()).hexdigest()[:10]
-    name = f"{_EXT_NAME}_{tag}_{digest}"
-    build_dir = None
-    root = os.environ.get("ANISDF_KERNEL_DIR")
-    if root:
-        build_dir = Path(root).expanduser() / name
-        build_dir.mkdir(parents=True, exist_ok=True)
+    name = extension_name(SOURCE.read_bytes(), flags, tag)
+    build_dir = build_directory(name)
+    wait_s = wait_seconds()
     log.info("hash grid: loading the compiled CPU kernel (the first build takes about a minute)")
     t0 = time.perf_counter()
-    module = cpp_extension.load(
-        name=name,
-        sources=[str(SOURCE)],
-        extra_cflags=flags,
-        extra_ldflags=["-fopenmp"],
-        build_directory=None if build_dir is None else str(build_dir),
-        verbose=False,
-    )
+    with build_lock(build_dir, wait_s):
+        module = _load(name, flags, build_dir)
     _state.update(build_s=time.perf_counter() - t0, name=name, flags=flags)
     return module
 
