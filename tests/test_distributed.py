@@ -57,7 +57,7 @@ def test_a_two_rank_step_is_one_step_on_the_union_of_their_rays(one_step_run, to
     one = Trainer(cfg, scene, tmp_path / "one", torch.device("cpu"), progress=False)
     before = {k: v.clone() for k, v in one.model.state_dict().items()}
     # the rays rank r drew (its own stream), then its marching jitter from the same stream, rank 0's rays first
-    n = cfg.renderer.init_rays
+    n = cfg.train.init_rays
     gens = [torch.Generator().manual_seed(rank_seed(cfg.train.seed, r)) for r in range(2)]
     union = _cat([one.train_data.sample(n, g) for g in gens])
     one.next_batch = lambda n_rays: union  # type: ignore[method-assign]

@@ -322,7 +322,7 @@ def test_losses_behave():
 
 def test_config_overrides_and_errors():
     cfg = load_config("cpu-quick", ["geometry.kind=single", "renderer.samples_per_step=2**14", "train.amp=false"])
-    assert cfg.geometry.kind == "single" and cfg.renderer.samples_per_step == 16384 and cfg.train.amp is False
+    assert cfg.geometry.kind == "single" and cfg.train.samples_per_step == 16384 and cfg.train.amp is False
     assert cfg.data.downscale == 2
     with pytest.raises(AnisdfError, match="unknown config key"):
         load_config(None, ["geometry.nope=1"])

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import math
 import operator
 import re
@@ -30,6 +31,7 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBase
 
 from anisdf.errors import AnisdfError
 
+log = logging.getLogger("anisdf")
 
 @dataclass
 class DataConfig:
@@ -123,10 +125,6 @@ class RendererConfig:
     """inv_s = exp(variance_scale * variance)."""
     inv_s_max: float = 1e4
     cos_anneal_steps: int = 20000
-    samples_per_step: int = 2**18
-    min_rays: int = 256
-    max_rays: int = 8192
-    init_rays: int = 1024
     background_model: Literal["nerf", "environment"] = "nerf"
     """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360 scenes) or
     environment (a colour per direction)."""
@@ -199,6 +197,12 @@ class TrainConfig:
     the hash grids, which have their own kernels), falling back to eager code with one warning. Meant for CUDA,
     where it fuses many small kernels of a launch-bound step; compiling costs about half a minute at start. On 2 CPU
     cores it made no measurable difference."""
+    samples_per_step: int = 2**18
+    """Rays per step follow this sample budget (per rank): the step's ray count is scaled so that the shaded samples
+    come to about this many (and the cheap pruning pass's to 4x)."""
+    min_rays: int = 256
+    max_rays: int = 8192
+    init_rays: int = 1024
     log_every: int = 25
     val_every: int = 1000
     ckpt_every: int = 1000
@@ -287,12 +291,36 @@ def _errors(where: str = "") -> Iterator[None]:
 
 def set_key(cfg: Config, key: str, value: Any) -> None:
     """Set a dotted ``key`` (e.g. ``geometry.n_levels``) of ``cfg`` in place, converted and checked by OmegaConf."""
+    key = _moved(key)
     node = OmegaConf.structured(cfg)
     with _errors():
         OmegaConf.update(node, key, _spelling(value, _hint(key)), merge=True)
     parent, _, name = key.rpartition(".")
     value = operator.attrgetter(key)(OmegaConf.to_object(node))
     setattr(operator.attrgetter(parent)(cfg) if parent else cfg, name, value)
+
+
+MOVED_KEYS = {f"renderer.{k}": f"train.{k}" for k in ("samples_per_step", "min_rays", "max_rays", "init_rays")}
+"""Keys that moved to the section that uses them; the old spelling is still read (presets, overrides, checkpoints)."""
+
+
+def _moved(key: str, warn: bool = True) -> str:
+    new = MOVED_KEYS.get(key, key)
+    if warn and new != key:
+        log.warning("config: %s is now %s", key, new)
+    return new
+
+
+def _move_sections(d: dict[str, Any], warn: bool) -> dict[str, Any]:
+    """``d`` (sections of keys) with moved keys under their new section."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in d.items()}
+    for old, new in MOVED_KEYS.items():
+        (s_old, k_old), (s_new, k_new) = old.split("."), new.split(".")
+        if isinstance(out.get(s_old), dict) and k_old in out[s_old]:
+            out.setdefault(s_new, {})[k_new] = out[s_old].pop(k_old)
+            if warn:
+                log.warning("config: %s is now %s", old, new)
+    return out
 
 
 def load_config(preset: str | None = None, overrides: list[str] | None = None) -> Config:
@@ -317,19 +345,20 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         if not isinstance(data, dict):
             raise AnisdfError(f"preset {preset}: expected a mapping of config sections, not {type(data).__name__}")
         with _errors(f"preset {preset}: "):
-            node = OmegaConf.merge(node, _prepare(data))
+            node = OmegaConf.merge(node, _prepare(_move_sections(data, warn=True)))
         node.preset = path.stem if is_path else preset
     for item in overrides or []:
         key, eq, value = item.partition("=")
         if not eq:
             raise AnisdfError(f"override '{item}' is not of the form key=value")
+        key = _moved(key.strip())
         with _errors():
-            OmegaConf.update(node, key.strip(), _spelling(_parse(value), _hint(key.strip())), merge=True)
+            OmegaConf.update(node, key, _spelling(_parse(value), _hint(key)), merge=True)
     return typing.cast(Config, OmegaConf.to_object(node))
 
 
 def config_from_dict(d: dict[str, Any]) -> Config:
     """Rebuild a config saved with :meth:`Config.to_dict` (e.g. from a checkpoint)."""
     with _errors():
-        node = OmegaConf.merge(OmegaConf.structured(Config), _prepare(d))
+        node = OmegaConf.merge(OmegaConf.structured(Config), _prepare(_move_sections(d, warn=False)))
     return typing.cast(Config, OmegaConf.to_object(node))

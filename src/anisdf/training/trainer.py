@@ -111,7 +111,7 @@ class Trainer:
         self.opt = torch.optim.AdamW(groups, betas=o.betas, eps=o.eps, weight_decay=o.weight_decay,
                                      fused=device.type == "cuda")
         self.base_lrs = [g["lr"] for g in self.opt.param_groups]
-        self.state = TrainState(n_rays=cfg.renderer.init_rays)
+        self.state = TrainState(n_rays=cfg.train.init_rays)
         self.train_data = RayDataset(scene, cfg.data.train_split, device=device, background=cfg.data.background)
         self.clock = time.perf_counter  # the time budget's clock (tests replace it)
         self.ckpt_path = self.run_dir.checkpoint
@@ -270,9 +270,9 @@ class Trainer:
         n_samples, n_marched = counts
         # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4); the budget
         # is per rank, the counts of all ranks (so every rank draws as many rays)
-        budget = rc.samples_per_step * self.world_size
+        budget = cfg.train.samples_per_step * self.world_size
         scale = min(budget / max(n_samples, 1), 4 * budget / max(n_marched, 1))
-        st.n_rays = int(min(max(st.n_rays * scale, rc.min_rays), rc.max_rays))
+        st.n_rays = int(min(max(st.n_rays * scale, cfg.train.min_rays), cfg.train.max_rays))
         st.loss_ema = value if st.loss_ema == 0 else 0.98 * st.loss_ema + 0.02 * value
         st.step += 1
         stats.update(psnr=psnr_from_mse(mse_val), n_samples=n_samples,
