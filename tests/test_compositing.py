@@ -8,9 +8,8 @@ import torch
 from scenes import write_test_scene
 
 from anisdf.data import RayDataset, load_scene
-from anisdf.data.images import composite
 from anisdf.eval.metrics import composite_on_white
-from anisdf.utils.images import to_rgb_uint8
+from anisdf.utils.images import composite, to_rgb_uint8
 
 
 def test_composite_on_tensors_and_arrays() -> None:

@@ -166,3 +166,61 @@ def test_the_checker_finds_function_level_and_relative_cycles(tmp_path: Path) ->
 ])
 def test_find_cycle(graph: dict[str, set[str]], expected: list[str] | None) -> None:
     assert find_cycle(graph) == expected
+
+
+LAYERS = (
+    ("anisdf.errors", "anisdf.utils", "anisdf.run_dir", "anisdf.config"),
+    ("anisdf.data", "anisdf.demo"),
+    ("anisdf.eval",),
+    ("anisdf.model_components",),
+    ("anisdf.fields",),
+    ("anisdf.models",),
+    ("anisdf.training",),
+    ("anisdf.export",),
+    ("anisdf.tasks",),
+    ("anisdf.viewer",),
+    ("anisdf.orchestration",),
+    ("anisdf.benchmarks",),
+    ("anisdf.cli", "anisdf.__main__"),
+)
+"""The library's floors, bottom first: a module may import its own floor and those below, never one above."""
+
+
+def floor_of(module: str) -> int | None:
+    for i, names in enumerate(LAYERS):
+        if any(module == n or module.startswith(n + ".") for n in names):
+            return i
+    return None
+
+
+def test_every_module_has_a_floor_and_imports_only_downwards() -> None:
+    graph = import_graph()
+    homeless = sorted(m for m in graph if m != ROOT and floor_of(m) is None)
+    assert not homeless, f"modules outside every floor of LAYERS: {homeless}"
+    upward = sorted((a, b) for a, deps in graph.items() for b in deps
+                    if a != ROOT and b != ROOT and floor_of(b) > floor_of(a))
+    assert not upward, "imports that run back up a floor: " + ", ".join(f"{a} -> {b}" for a, b in upward)
+
+
+MAX_MODULE_LINES = 450
+MAX_FUNCTION_LINES = 120
+
+
+def test_modules_and_functions_can_be_read_in_one_sitting() -> None:
+    long_modules, long_functions = [], []
+    for name, path in module_files().items():
+        text = path.read_text()
+        if len(text.splitlines()) > MAX_MODULE_LINES:
+            long_modules.append(f"{name} ({len(text.splitlines())} lines)")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_FUNCTION_LINES:
+                    long_functions.append(f"{name}.{node.name} ({n} lines)")
+    assert not long_modules, f"modules over {MAX_MODULE_LINES} lines: {long_modules}"
+    assert not long_functions, f"functions over {MAX_FUNCTION_LINES} lines: {long_functions}"
+
+
+def test_the_floor_check_catches_an_upward_import() -> None:
+    assert floor_of("anisdf.fields.sdf_field") < floor_of("anisdf.models.anisdf") < floor_of("anisdf.cli.train")
+    assert floor_of("anisdf.nowhere") is None

@@ -16,18 +16,7 @@ from PIL import Image, UnidentifiedImageError
 from anisdf.errors import DataError
 
 T = TypeVar("T")
-A = TypeVar("A", torch.Tensor, np.ndarray)
 DECODE_ERRORS = (OSError, UnidentifiedImageError, SyntaxError, ValueError, Image.DecompressionBombError)
-
-
-def composite(rgb: A, alpha: A, background: A | float) -> A:
-    """``rgb * alpha + background * (1 - alpha)``: an object's colour over a background (alpha in [0, 1]).
-
-    The one compositing route: training targets (:class:`anisdf.data.rays.RayDataset`, random or white
-    backgrounds), RGBA images shown or saved (:mod:`anisdf.utils.images`) and RGBA references in metrics.
-    Works on tensors and arrays alike; ``alpha`` broadcasts over the colour channels ([..., 1]).
-    """
-    return rgb * alpha + background * (1.0 - alpha)
 
 
 def target_size(width: int, height: int, downscale: float) -> tuple[int, int]:

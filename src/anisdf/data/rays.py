@@ -13,9 +13,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from anisdf.data.images import composite
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, DataError
+from anisdf.utils.images import composite
 
 BACKGROUNDS = ("auto", "white", "black", "random")
 

@@ -18,8 +18,8 @@ import trimesh
 from scipy.spatial import cKDTree
 from skimage.metrics import structural_similarity
 
-from anisdf.data.images import composite
 from anisdf.errors import AnisdfError, DataError
+from anisdf.utils.images import composite
 
 ArrayLike = np.ndarray | torch.Tensor
 

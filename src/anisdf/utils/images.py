@@ -7,16 +7,27 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from anisdf.data.images import composite
 from anisdf.utils.atomic import atomic_path
 
 ArrayLike = np.ndarray | torch.Tensor
+A = TypeVar("A", torch.Tensor, np.ndarray)
+
+
+def composite(rgb: A, alpha: A, background: A | float) -> A:
+    """``rgb * alpha + background * (1 - alpha)``: an object's colour over a background (alpha in [0, 1]).
+
+    The one compositing route: training targets (:class:`anisdf.data.rays.RayDataset`, random or white
+    backgrounds), RGBA images shown or saved (this module) and RGBA references in metrics.
+    Works on tensors and arrays alike; ``alpha`` broadcasts over the colour channels ([..., 1]).
+    """
+    return rgb * alpha + background * (1.0 - alpha)
+
 
 # viridis (matplotlib, CC0) sampled at t = 0, 0.1, ..., 1; linear interpolation in between
 _VIRIDIS = np.array(
