@@ -6,7 +6,7 @@ A run folder (``anisdf train DATA --out RUN``) holds::
     run.json               dataset path and format, preset, normalisation, status, step
     checkpoints/last.pt    the last checkpoint (atomic; --resume continues from it)
     log.jsonl, tb/         training log (one JSON line per logged step) and TensorBoard events
-    val/                   validation panels written during training
+    val/                   validation panels written during training, their PSNR in val/psnr.jsonl
     mesh.<ply|obj|glb>     extract-mesh's mesh, with its settings in mesh.json
     eval.json, eval/       eval's figures and panels; report.html / report.md
     renders/<split>/       render's images; renders/orbit.mp4
@@ -58,6 +58,11 @@ class RunDir:
 
     def validation_image(self, step: int) -> Path:
         return self.root / "val" / f"step_{step:06d}.png"
+
+    @property
+    def validation_log(self) -> Path:
+        """One JSON line per validation: ``{"step", "time", "val_psnr"}`` (the first test view's PSNR)."""
+        return self.root / "val" / "psnr.jsonl"
 
     def mesh(self, fmt: str = "ply") -> Path:
         return self.root / f"mesh.{fmt}"

@@ -304,6 +304,9 @@ class Trainer:
         path = self.run_dir.validation_image(self.state.step)
         save_panel(path, res)
         self.writer.add_scalar("val/psnr", res["psnr"], self.state.step)
+        with self.run_dir.validation_log.open("a") as f:
+            f.write(json.dumps({"step": self.state.step, "time": round(self.state.train_seconds, 2),
+                                "val_psnr": round(float(res["psnr"]), 4)}) + "\n")
         return res["psnr"]
 
     # ----------------------------------------------------------------------------------------- loop
