@@ -117,7 +117,8 @@ def test_unwrap_in_pieces_keeps_every_triangle_apart_in_one_atlas():
     triangles of different charts do not share a texel (the rasteriser gives each texel one triangle)."""
     import trimesh
 
-    from anisdf.export.bake import rasterize_uv, unwrap
+    from anisdf.export.texels import rasterize_uv
+    from anisdf.export.uv_atlas import unwrap
 
     mesh = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces: 11 pieces of 500
     vmap, faces, uvs = unwrap(mesh.vertices, mesh.faces, mesh.vertex_normals, 256, 2, piece_faces=500)

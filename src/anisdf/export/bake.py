@@ -1,12 +1,13 @@
 """Bake a trained model into a real-time asset: decimated, UV-unwrapped mesh, diffuse texture, per-texel lobes.
 
 Steps (:func:`bake`): marching cubes on the SDF (:func:`anisdf.export.mesh.extract_mesh`, enclosed inner shells
-dropped), quadric decimation to the face budget (``fast-simplification``), vertex normals from the SDF gradient, a UV
-atlas (``xatlas``), and texels rasterised in UV space. Each texel is a point on the decimated surface; it is moved
-onto the SDF's zero level (one Newton step) and the model's blended colour ``C = w c_view + (1 - w) c_ref``
-(:class:`anisdf.fields.radiance_field.RadianceField`, with the SDF's own normal and feature there) is sampled from
-many view directions ``d`` over the hemisphere of the mesh normal ``n`` the viewer shades with (cosine-weighted:
-each sample stands for an equal share of projected area). With ``r = d - 2 (d . n) n`` the reflected direction:
+dropped), quadric decimation to the face budget (:func:`anisdf.export.mesh.decimate`), vertex normals from the SDF
+gradient, a UV atlas (:mod:`anisdf.export.uv_atlas`), and texels rasterised in UV space (:mod:`anisdf.export.texels`).
+Each texel is a point on the decimated surface; it is moved onto the SDF's zero level (one Newton step) and the
+model's blended colour ``C = w c_view + (1 - w) c_ref`` (:class:`anisdf.fields.radiance_field.RadianceField`, with
+the SDF's own normal and feature there) is sampled from many view directions ``d`` over the hemisphere of the mesh
+normal ``n`` the viewer shades with (cosine-weighted: each sample stands for an equal share of projected area).
+With ``r = d - 2 (d . n) n`` the reflected direction:
 
 * specular texture (``specular_texture`` texels a side): the diffuse colour ``D`` and ``K`` spherical Gaussian lobes
   fitted jointly per texel to ``C`` over ``directions`` reflected directions (:func:`anisdf.export.sg_fit.fit_lobes`);
@@ -21,24 +22,22 @@ of the nearest point of their nearest triangle.
 
 from __future__ import annotations
 
-import io
-import logging
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
-from PIL import Image
 from torch import Tensor
 from tqdm.auto import tqdm
 
 from anisdf.errors import AnisdfError
 from anisdf.export import baked_format as fmt
+from anisdf.export.asset_files import Baked
+from anisdf.export.mesh import decimate, sdf_normals
 from anisdf.export.sg_fit import (
     SHARPNESS_RANGE,
     Lobes,
@@ -49,31 +48,27 @@ from anisdf.export.sg_fit import (
     sample_reflections,
     tangent_frames,
 )
-from anisdf.utils.atomic import atomic_path
-
-log = logging.getLogger("anisdf")
-
-MAX_LOBES = 8
+from anisdf.export.texels import Texels, rasterize_uv, upsample
+from anisdf.export.uv_atlas import unwrap
 
 
-@dataclass
+@dataclass(kw_only=True)
 class BakeOptions:
-    """Settings of :func:`bake` (``anisdf export``'s options)."""
+    """Settings of :func:`bake`. The first five are ``anisdf export``'s options, with their defaults in
+    :class:`anisdf.tasks.export.ExportOptions`; the others are fixed by the bake."""
 
-    faces: int = 200_000
+    faces: int
     """Triangle budget of the decimated mesh."""
-    texture: int = 1024
+    texture: int
     """Diffuse texture size (texels a side)."""
-    specular_texture: int = 0
+    specular_texture: int
     """Lobe texture size; 0: half the diffuse texture's."""
-    lobes: int = 3
+    lobes: int
     """Spherical Gaussian lobes per texel (0: diffuse only)."""
-    directions: int = 64
+    directions: int
     """Reflected directions each specular texel's fit sees."""
     diffuse_directions: int = 16
     """Directions of the hemisphere mean at each diffuse texel."""
-    resolution: int = 512
-    """Marching cubes resolution before decimation."""
     fit_iters: int = 60
     padding: int = 2
     """Texels between charts in the specular texture (twice as many in a diffuse texture twice as large)."""
@@ -96,214 +91,11 @@ class BakeOptions:
         if self.texture % self.spec_size:
             raise AnisdfError(f"--texture ({self.texture}) must be a multiple of the specular texture "
                               f"({self.spec_size})")
-        if not 0 <= self.lobes <= MAX_LOBES:
-            raise AnisdfError(f"--lobes must be between 0 and {MAX_LOBES}, got {self.lobes}")
+        if not 0 <= self.lobes <= fmt.MAX_LOBES:
+            raise AnisdfError(f"--lobes must be between 0 and {fmt.MAX_LOBES}, got {self.lobes}")
         if self.directions < max(2 * self.lobes + 2, 4):
             raise AnisdfError(f"--directions must be at least {max(2 * self.lobes + 2, 4)} for {self.lobes} lobes, "
                               f"got {self.directions}")
-
-
-# ------------------------------------------------------------------------------------------------ mesh
-def decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
-    """Quadric edge-collapse decimation to about ``faces`` triangles (fast-simplification, which refuses collapses
-    that flip a triangle, so thin parts keep their volume); meshes already small enough are returned as they are."""
-    if len(mesh.faces) <= faces:
-        return mesh
-    import fast_simplification
-
-    v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
-                                        np.asarray(mesh.faces, dtype=np.int64), target_count=int(faces))
-    out = trimesh.Trimesh(vertices=v, faces=f, process=True)
-    out.update_faces(out.nondegenerate_faces())
-    out.remove_unreferenced_vertices()
-    return out
-
-
-@torch.no_grad()
-def sdf_normals(model, points: Tensor, chunk: int = 1 << 16) -> Tensor:
-    """Unit SDF gradients at ``points`` [M, 3] (normalised frame)."""
-    out = []
-    for s in range(0, len(points), chunk):
-        _, _, g = model.geometry.with_gradient(points[s:s + chunk], create_graph=False, fd_eps=model.fd_eps())
-        out.append(F.normalize(g, dim=-1))
-    return torch.cat(out) if out else points.new_zeros(0, 3)
-
-
-UNWRAP_PIECE_FACES = 2000
-"""Faces per piece handed to xatlas: its chart computation grows faster than linearly with a mesh's size (a
-200k-face mesh in one piece: 160 s on 2 CPU cores; in pieces of 2000 faces: 7-10 s, with fewer charts)."""
-
-
-def _pieces(centroids: np.ndarray, idx: np.ndarray, per: int) -> list[np.ndarray]:
-    """Faces ``idx`` split at the median of their centroids' widest axis, again and again, into pieces of at most
-    ``per`` faces."""
-    if len(idx) <= per:
-        return [idx]
-    p = centroids[idx]
-    order = idx[np.argsort(p[:, int(np.argmax(np.ptp(p, axis=0)))], kind="stable")]
-    half = len(order) // 2
-    return _pieces(centroids, order[:half], per) + _pieces(centroids, order[half:], per)
-
-
-def unwrap(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray, size: int, padding: int,
-           piece_faces: int = UNWRAP_PIECE_FACES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """xatlas charts packed into one ``size`` x ``size`` atlas: ``vmapping`` (original vertex of each new one),
-    triangles, UVs in [0, 1] (texel ``(i, j)`` of row ``j`` from the top covers ``[i, i + 1] / size x
-    [j, j + 1] / size``).
-
-    The mesh goes to xatlas as compact pieces of ``piece_faces`` faces (:data:`UNWRAP_PIECE_FACES`), charted each
-    on its own and packed together. xatlas is asked for one atlas of whatever size a texel density aimed at ``size``
-    (about 60% of the atlas covered) needs, with ``padding + 1`` texels between charts, and the UVs are scaled so
-    that the atlas's longer side is ``size``; packed again, denser, only when that scale would leave less than
-    ``padding`` texels between charts."""
-    import xatlas
-
-    pos = np.ascontiguousarray(vertices, dtype=np.float32)
-    tris = np.asarray(faces, dtype=np.int64)
-    nrm = np.ascontiguousarray(normals, dtype=np.float32)
-    corner = pos[tris]
-    area = 0.5 * float(np.linalg.norm(np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0]), axis=1).sum())
-    if not area > 0:
-        raise AnisdfError("the mesh has no area to unwrap")
-    pieces = []
-    for part in _pieces(corner.mean(1), np.arange(len(tris)), max(int(piece_faces), 1)):
-        used, local = np.unique(tris[part], return_inverse=True)
-        pieces.append((used, np.ascontiguousarray(local.reshape(-1, 3), dtype=np.uint32)))
-    texels_per_unit = math.sqrt(0.6 * size * size / area)
-    gap = padding + 1
-    for _ in range(4):
-        atlas = xatlas.Atlas()
-        for used, local in pieces:
-            atlas.add_mesh(pos[used], local, normals=nrm[used])
-        pack = xatlas.PackOptions()
-        pack.resolution = 0  # one atlas, as large as the charts need at this density
-        pack.padding = int(gap)
-        pack.bilinear = True
-        pack.texels_per_unit = float(texels_per_unit)
-        atlas.generate(chart_options=xatlas.ChartOptions(), pack_options=pack)
-        side = max(atlas.width, atlas.height)
-        if side * padding <= size * gap:  # scaled to ``size``, the charts stay >= ``padding`` texels apart
-            break
-        texels_per_unit *= 0.95 * size / side
-    else:
-        raise AnisdfError(f"xatlas could not pack the charts into one {size}^2 atlas; use a larger --texture or "
-                          "fewer --faces")
-    vmaps, indices, uvs = [], [], []
-    offset = 0
-    for i, (used, _) in enumerate(pieces):
-        vmapping, idx, uv = atlas[i]
-        vmaps.append(used[vmapping.astype(np.int64)])
-        indices.append(idx.astype(np.int64) + offset)
-        uvs.append(uv)
-        offset += len(vmapping)
-    # xatlas divides by its atlas's width and height: UVs in units of the longer side, which becomes ``size``
-    uv = np.concatenate(uvs) * np.array([atlas.width / side, atlas.height / side], dtype=np.float32)
-    return np.concatenate(vmaps), np.concatenate(indices), uv.astype(np.float32)
-
-
-# ------------------------------------------------------------------------------------------------ texels
-@dataclass
-class Texels:
-    """Texels of a ``size`` x ``size`` texture that lie on (or next to) a triangle: flat indices ``row * size +
-    col``, the triangle, barycentrics [M, 3] (of the texel centre, or of the nearest point of the triangle for the
-    ring outside it), and whether the centre lies inside."""
-
-    size: int
-    index: Tensor
-    face: Tensor
-    bary: Tensor
-    inside: Tensor
-
-
-def _bary2d(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    v0, v1, v2 = b - a, c - a, p - a
-    den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
-    den = torch.where(den.abs() < 1e-20, torch.full_like(den, 1e-20), den)
-    l1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
-    l2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
-    return torch.stack([1.0 - l1 - l2, l1, l2], -1)
-
-
-def _closest_on_triangle(p: Tensor, a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    """Barycentrics of the point of triangle (a, b, c) nearest to ``p`` (2D, batched)."""
-    bary = _bary2d(p, a, b, c)
-    inside = (bary >= 0).all(-1)
-    best = bary.clone()
-    best_d = torch.full((len(p),), float("inf"), dtype=p.dtype)
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        va, vb = (a, b, c)[i], (a, b, c)[j]
-        e = vb - va
-        t = (((p - va) * e).sum(-1) / (e * e).sum(-1).clamp_min(1e-20)).clamp(0, 1)
-        q = va + t[:, None] * e
-        d = ((p - q) ** 2).sum(-1)
-        w = torch.zeros_like(bary)
-        w[:, i], w[:, j] = 1.0 - t, t
-        upd = (d < best_d) & ~inside
-        best[upd], best_d[upd] = w[upd], d[upd]
-    return best
-
-
-def rasterize_uv(uvs: np.ndarray, faces: np.ndarray, size: int, ring: int = 2, chunk: int = 1 << 22) -> Texels:
-    """The texels whose centres lie inside a UV triangle, plus those within ``ring`` texels of one."""
-    from scipy import ndimage
-
-    p = torch.as_tensor(uvs, dtype=torch.float64) * size
-    f = torch.as_tensor(faces, dtype=torch.long)
-    tri = p[f]  # [F, 3, 2]
-    lo = torch.ceil(tri.min(1).values - 0.5).clamp(0, size - 1).long()
-    hi = torch.floor(tri.max(1).values - 0.5).clamp(0, size - 1).long()
-    nc, nr = (hi[:, 0] - lo[:, 0] + 1).clamp_min(0), (hi[:, 1] - lo[:, 1] + 1).clamp_min(0)
-    counts = nc * nr
-    face_of = torch.full((size * size,), -1, dtype=torch.long)
-    bary_of = torch.zeros(size * size, 3, dtype=torch.float64)
-    ends = torch.cumsum(counts, 0)
-    start = 0
-    while start < len(f):
-        base = int(ends[start - 1]) if start else 0
-        stop = max(int(torch.searchsorted(ends, torch.tensor(base + chunk), right=True)), start + 1)
-        cnt = counts[start:stop]
-        owner = torch.repeat_interleave(torch.arange(start, stop), cnt)
-        local = torch.arange(int(cnt.sum())) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt, cnt)
-        col = lo[owner, 0] + local % nc[owner]
-        row = lo[owner, 1] + local // nc[owner]
-        centre = torch.stack([col, row], -1).double() + 0.5
-        t = tri[owner]
-        bary = _bary2d(centre, t[:, 0], t[:, 1], t[:, 2])
-        ok = (bary >= -1e-9).all(-1)
-        idx = (row * size + col)[ok]
-        face_of[idx] = owner[ok]
-        bary_of[idx] = bary[ok]
-        start = stop
-    # triangles too thin to hold a texel centre get the texel under their centroid (when no other triangle has it),
-    # so that a small chart is never left to the texels of its neighbour across the padding
-    holds = torch.zeros(len(f), dtype=torch.bool)
-    holds[face_of[face_of >= 0]] = True
-    thin = (~holds).nonzero()[:, 0]
-    if len(thin):
-        centroid = tri[thin].mean(1)
-        cell = torch.floor(centroid).clamp(0, size - 1).long()
-        idx = cell[:, 1] * size + cell[:, 0]
-        free = face_of[idx] < 0
-        thin, idx, cell = thin[free], idx[free], cell[free]
-        t = tri[thin]
-        face_of[idx] = thin
-        bary_of[idx] = _closest_on_triangle(cell.double() + 0.5, t[:, 0], t[:, 1], t[:, 2])
-    covered = (face_of >= 0).reshape(size, size).numpy()
-    inside_idx = torch.from_numpy(np.flatnonzero(covered))
-    if not len(inside_idx):
-        raise AnisdfError("the UV atlas covers no texel centre; use a larger --texture")
-    dist, nearest = ndimage.distance_transform_edt(~covered, return_indices=True)
-    ring_mask = (~covered) & (dist <= ring + 1e-6)
-    ring_idx = torch.from_numpy(np.flatnonzero(ring_mask))
-    near_flat = torch.from_numpy((nearest[0] * size + nearest[1]).reshape(-1))
-    ring_face = face_of[near_flat[ring_idx]]
-    centre = torch.stack([ring_idx % size, ring_idx // size], -1).double() + 0.5
-    t = tri[ring_face]
-    ring_bary = _closest_on_triangle(centre, t[:, 0], t[:, 1], t[:, 2])
-    index = torch.cat([inside_idx, ring_idx])
-    inside = torch.arange(len(index)) < len(inside_idx)
-    return Texels(size, index, torch.cat([face_of[inside_idx], ring_face]),
-                  torch.cat([bary_of[inside_idx], ring_bary]).float(), inside)
 
 
 # ------------------------------------------------------------------------------------------------ model queries
@@ -338,47 +130,6 @@ def model_colors(model, x: Tensor, feat: Tensor, normal: Tensor, view_dirs: Tens
         xs, fs, ns = (t[s:e, None, :].expand(e - s, n, t.shape[-1]).reshape(m, -1) for t in (x, feat, normal))
         col = model.appearance(xs / model.radius, fs, ns, view_dirs[s:e].reshape(m, 3))
         out[s:e] = col["rgb"].reshape(e - s, n, 3).float()
-    return out
-
-
-# ------------------------------------------------------------------------------------------------ baking
-@dataclass
-class Baked:
-    """Everything :func:`write_asset` writes, in the normalised frame."""
-
-    vertices: np.ndarray
-    normals: np.ndarray
-    uvs: np.ndarray
-    faces: np.ndarray
-    diffuse: np.ndarray
-    """[T, T, 3] uint8."""
-    lobe: np.ndarray
-    """[K, S, S, 3] uint8."""
-    amplitude: np.ndarray
-    """[K, S, S, 3] uint8."""
-    stats: dict
-
-
-def _upsample(values: Tensor, tex_lo: Texels, tex_hi: Texels) -> Tensor:
-    """Bilinear lookups (the viewer's) of per-texel ``values`` [M_lo, C] of the low texture at the centres of the
-    high texture's texels: [M_hi, C]."""
-    s_lo, s_hi = tex_lo.size, tex_hi.size
-    img = torch.zeros(s_lo * s_lo, values.shape[1])
-    img[tex_lo.index] = values
-    img = img.reshape(s_lo, s_lo, -1)
-    col = (tex_hi.index % s_hi).double() + 0.5
-    row = (tex_hi.index // s_hi).double() + 0.5
-    px = col / s_hi * s_lo - 0.5
-    py = row / s_hi * s_lo - 0.5
-    x0, y0 = torch.floor(px), torch.floor(py)
-    fx, fy = (px - x0).float()[:, None], (py - y0).float()[:, None]
-    x0, y0 = x0.long(), y0.long()
-    out = torch.zeros(len(tex_hi.index), values.shape[1])
-    for ox, oy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-        qx = (x0 + ox).clamp(0, s_lo - 1)
-        qy = (y0 + oy).clamp(0, s_lo - 1)
-        w = (fx if ox else 1 - fx) * (fy if oy else 1 - fy)
-        out += w * img[qy, qx]
     return out
 
 
@@ -491,7 +242,7 @@ def bake(model, mesh: trimesh.Trimesh, opts: BakeOptions, progress: bool = True,
         if ratio > 1:  # the fitted diffuse colour, with the finer detail of the hemisphere mean
             m_d = _mean_color(model, surf, tex_d, opts, progress, "bake diffuse")
             m_s = _mean_color(model, surf, tex_s, opts, progress, "bake diffuse (coarse)")
-            diffuse_vals = m_d + _upsample(lobes.diffuse - m_s, tex_s, tex_d)
+            diffuse_vals = m_d + upsample(lobes.diffuse - m_s, tex_s, tex_d)
         else:
             diffuse_vals = lobes.diffuse
     else:
@@ -509,96 +260,3 @@ def bake(model, mesh: trimesh.Trimesh, opts: BakeOptions, progress: bool = True,
         amp_img[i, idx] = fmt.to_byte(lobes.amplitude[:, i].numpy())
     return Baked(surf.verts.numpy(), surf.normals.numpy(), uvs, faces, diffuse.reshape(tex, tex, 3),
                  lobe_img.reshape(k, spec, spec, 3), amp_img.reshape(k, spec, spec, 3), stats)
-
-
-# ------------------------------------------------------------------------------------------------ files
-def png_bytes(img: np.ndarray) -> bytes:
-    """An RGB uint8 image as PNG bytes (no gamma or colour profile chunk: the bytes are the values)."""
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(img), "RGB").save(buf, format="PNG", optimize=False, compress_level=9)
-    return buf.getvalue()
-
-
-def write_bytes(path: Path, data: bytes) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-
-
-def glb_bytes(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, diffuse_png: bytes,
-              extras: dict | None = None) -> bytes:
-    """A glb of one textured triangle mesh: POSITION, NORMAL, TEXCOORD_0, uint32 indices and the diffuse PNG as the
-    base colour of a PBR material (metallic 0, roughness 1) that also asks for ``KHR_materials_unlit`` (the colours
-    are baked: viewers that know the extension show them as they are)."""
-    import pygltflib as g
-
-    arrays = [np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(normals, np.float32),
-              np.ascontiguousarray(uvs, np.float32), np.ascontiguousarray(faces, np.uint32).reshape(-1)]
-    blob = b""
-    views = []
-    for a in [*arrays, diffuse_png]:
-        data = a if isinstance(a, bytes) else a.tobytes()
-        views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data)))
-        blob += data + b"\0" * (-len(data) % 4)
-    for i in range(3):
-        views[i].target = g.ARRAY_BUFFER
-    views[3].target = g.ELEMENT_ARRAY_BUFFER
-    pos = arrays[0]
-    accessors = [
-        g.Accessor(bufferView=0, componentType=g.FLOAT, count=len(pos), type=g.VEC3,
-                   min=pos.min(0).tolist(), max=pos.max(0).tolist()),
-        g.Accessor(bufferView=1, componentType=g.FLOAT, count=len(pos), type=g.VEC3),
-        g.Accessor(bufferView=2, componentType=g.FLOAT, count=len(pos), type=g.VEC2),
-        g.Accessor(bufferView=3, componentType=g.UNSIGNED_INT, count=int(arrays[3].size), type=g.SCALAR),
-    ]
-    material = g.Material(
-        pbrMetallicRoughness=g.PbrMetallicRoughness(baseColorTexture=g.TextureInfo(index=0), metallicFactor=0.0,
-                                                    roughnessFactor=1.0),
-        extensions={"KHR_materials_unlit": {}}, name="baked")
-    gltf = g.GLTF2(
-        asset=g.Asset(version="2.0", generator="anisdf export"),
-        scene=0, scenes=[g.Scene(nodes=[0])], nodes=[g.Node(mesh=0, name="anisdf")],
-        meshes=[g.Mesh(primitives=[g.Primitive(attributes=g.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2),
-                                               indices=3, material=0)])],
-        accessors=accessors, bufferViews=views, buffers=[g.Buffer(byteLength=len(blob))],
-        materials=[material], textures=[g.Texture(source=0, sampler=0)],
-        samplers=[g.Sampler(magFilter=g.LINEAR, minFilter=g.LINEAR_MIPMAP_LINEAR, wrapS=g.CLAMP_TO_EDGE,
-                            wrapT=g.CLAMP_TO_EDGE)],
-        images=[g.Image(bufferView=4, mimeType="image/png")],
-        extensionsUsed=["KHR_materials_unlit"], extras=extras or {})
-    gltf.set_binary_blob(blob)
-    return b"".join(gltf.save_to_bytes())
-
-
-def write_asset(out: Path, baked: Baked, to_world: np.ndarray, manifest: dict) -> dict[str, int]:
-    """Write model.glb (mesh moved to the dataset's frame by ``to_world``), specular_*.png, index.html and
-    export.json (``manifest`` plus the file sizes) into ``out``; returns the sizes in bytes."""
-    from anisdf.export.web_page import page_html
-
-    out.mkdir(parents=True, exist_ok=True)
-    T = np.asarray(to_world, dtype=np.float64)
-    lin = T[:3, :3]
-    verts = np.asarray(baked.vertices, np.float64) @ lin.T + T[:3, 3]
-    normals = np.asarray(baked.normals, np.float64) @ np.linalg.inv(lin)  # normals transform by the inverse transpose
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
-    faces = np.asarray(baked.faces)
-    if np.linalg.det(lin) < 0:  # a reflection: keep the triangles wound counter-clockwise seen from outside
-        faces = faces[:, ::-1]
-    glb = glb_bytes(verts, normals, baked.uvs, faces, png_bytes(baked.diffuse),
-                    extras={"anisdf": {"format": fmt.FORMAT, "manifest": fmt.MANIFEST}})
-    lobe_pngs = [png_bytes(baked.lobe[k]) for k in range(len(baked.lobe))]
-    rgb_pngs = [png_bytes(baked.amplitude[k]) for k in range(len(baked.amplitude))]
-    files: dict[str, bytes] = {fmt.GLB: glb}
-    for k in range(len(lobe_pngs)):
-        files[fmt.lobe_png(k)] = lobe_pngs[k]
-        files[fmt.rgb_png(k)] = rgb_pngs[k]
-    # stale lobe textures of an earlier export with more lobes would contradict the manifest
-    for old in out.glob("specular_*.png"):
-        if old.name not in files:
-            old.unlink()
-    for name, data in files.items():
-        write_bytes(out / name, data)
-    page = page_html(manifest, glb, lobe_pngs, rgb_pngs).encode("utf-8")
-    write_bytes(out / fmt.PAGE, page)
-    sizes = {name: len(data) for name, data in files.items()}
-    sizes[fmt.PAGE] = len(page)
-    return sizes

@@ -30,6 +30,8 @@ VERSION = 1
 GLB = "model.glb"
 MANIFEST = "export.json"
 PAGE = "index.html"
+MAX_LOBES = 8
+"""Most lobes per texel an asset holds (``anisdf export --lobes``)."""
 
 
 def lobe_png(k: int) -> str:

@@ -1,4 +1,5 @@
-"""Mesh extraction from an SDF by marching cubes, clean-up, vertex colours and export.
+"""Mesh operations: extraction from an SDF by marching cubes, clean-up, decimation, SDF normals, vertex colours
+and saving.
 
 Conventions: the SDF is negative inside; the extracted meshes are in the normalised frame the SDF is
 queried in (use :func:`to_world` to go back to the dataset frame); triangles are wound counter-clockwise
@@ -15,6 +16,7 @@ from typing import Literal
 import mcubes
 import numpy as np
 import torch
+import torch.nn.functional as F
 import trimesh
 from scipy import ndimage
 from tqdm.auto import tqdm
@@ -281,6 +283,31 @@ def remove_floaters(mesh: trimesh.Trimesh, min_fraction: float = 0.01) -> trimes
     out.update_faces(keep_labels[labels])
     out.remove_unreferenced_vertices()
     return out
+
+
+def decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
+    """Quadric edge-collapse decimation to about ``faces`` triangles (fast-simplification, which refuses collapses
+    that flip a triangle, so thin parts keep their volume); meshes already small enough are returned as they are."""
+    if len(mesh.faces) <= faces:
+        return mesh
+    import fast_simplification
+
+    v, f = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
+                                        np.asarray(mesh.faces, dtype=np.int64), target_count=int(faces))
+    out = trimesh.Trimesh(vertices=v, faces=f, process=True)
+    out.update_faces(out.nondegenerate_faces())
+    out.remove_unreferenced_vertices()
+    return out
+
+
+@torch.no_grad()
+def sdf_normals(model, points: torch.Tensor, chunk: int = 1 << 16) -> torch.Tensor:
+    """Unit SDF gradients of ``model`` at ``points`` [M, 3] (normalised frame)."""
+    out = []
+    for s in range(0, len(points), chunk):
+        _, _, g = model.geometry.with_gradient(points[s:s + chunk], create_graph=False, fd_eps=model.fd_eps())
+        out.append(F.normalize(g, dim=-1))
+    return torch.cat(out) if out else points.new_zeros(0, 3)
 
 
 @torch.no_grad()

@@ -2,17 +2,60 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from anisdf.errors import AnisdfError
+from anisdf.export.baked_format import MAX_LOBES
+from anisdf.run_dir import RunDir
 from anisdf.tasks.loading import dataset_camera, scene_for_run
+from anisdf.utils.options import count_at_least, float_at_least, int_at_least, option
+
+if TYPE_CHECKING:
+    from anisdf.export.bake import BakeOptions
 
 log = logging.getLogger("anisdf")
+
+
+@dataclasses.dataclass(kw_only=True)
+class ExportOptions:
+    """``anisdf export``'s options (:func:`export`)."""
+
+    faces: int = option(200_000, "triangle budget of the decimated mesh, e.g. 300k (default 200k)", count_at_least(4))
+    texture: int = option(1024, "diffuse texture size in texels (1024)", int_at_least(16))
+    specular_texture: int = option(0, "lobe texture size in texels; 0: half of --texture", int_at_least(0))
+    lobes: int = option(3, f"spherical Gaussian lobes per texel (0: diffuse only; at most {MAX_LOBES})",
+                        int_at_least(0))
+    directions: int = option(64, "reflected directions each texel's lobes are fitted to", int_at_least(4))
+    resolution: int = option(512, "marching cubes resolution", int_at_least(16))
+    supersample: int = option(2, "the page's default antialiasing: s x s samples per pixel (1-4; eval --baked uses it "
+                                 "too)", int_at_least(1))
+    pixel_filter: float = option(0.6, "sigma in pixels of the Gaussian that filters those samples into pixels (0: each "
+                                      "pixel's own s x s box); 0.6 matches the path-traced training images best "
+                                      "(benchmarks/RESULTS.md)", float_at_least(0.0))
+    device: str | None = option(None, "auto (CUDA if available) | cpu | cuda[:N]")
+    progress: bool = option(True, "show progress bars", cli=False)
+
+    def bake_options(self) -> BakeOptions:
+        """The :class:`anisdf.export.bake.BakeOptions` of these options."""
+        from anisdf.export.bake import BakeOptions
+
+        return BakeOptions(faces=self.faces, texture=self.texture, specular_texture=self.specular_texture,
+                           lobes=self.lobes, directions=self.directions)
+
+    def validate(self) -> None:
+        """Raise an :class:`AnisdfError` naming the first option out of its range."""
+        self.bake_options().validate()
+        if not 1 <= self.supersample <= 4:
+            raise AnisdfError(f"--supersample must be between 1 and 4, got {self.supersample}")
+        if not 0.0 <= self.pixel_filter <= 2.0:
+            raise AnisdfError(f"--pixel-filter must be between 0 and 2 pixels, got {self.pixel_filter}")
+
 
 def _export_camera(run: Path, cfg, ck: dict[str, Any]) -> tuple[dict[str, Any] | None, list[float] | None]:
     """The page's first camera (the first test view, dataset frame) and the scene's up direction (the mean of the
@@ -30,35 +73,33 @@ def _export_camera(run: Path, cfg, ck: dict[str, Any]) -> tuple[dict[str, Any] |
     return cam, up.tolist()
 
 
-def export(run: Path, out: Path, faces: int = 200_000, texture: int = 1024, specular_texture: int = 0,
-           lobes: int = 3, directions: int = 64, resolution: int = 512, supersample: int = 2,
-           pixel_filter: float = 0.6,
-           device: str | None = None, progress: bool = True) -> dict[str, Any]:
+def export(run: Path, out: Path, options: ExportOptions | None = None, **changes: Any) -> dict[str, Any]:
     """Bake RUN into a real-time asset in OUT (:mod:`anisdf.export.bake`): model.glb, specular_*.png, index.html and
-    export.json (settings, file sizes, timings). Returns export.json's content."""
+    export.json (settings, file sizes, timings). ``changes`` replace fields of ``options``. Returns export.json's
+    content. OUT's files are replaced together at the end; an export that fails leaves OUT as it was."""
     import time
 
     from anisdf import __version__
     from anisdf.export import baked_format as fmt
-    from anisdf.export.bake import BakeOptions, bake, write_asset
-    from anisdf.export.mesh import extract_mesh as mc
-    from anisdf.export.sg_fit import SHARPNESS_RANGE
+    from anisdf.export import require_bake_modules
     from anisdf.tasks.loading import load_run
-    from anisdf.utils.atomic import write_text_atomic
     from anisdf.utils.devices import pick_device
 
+    o = dataclasses.replace(options or ExportOptions(), **changes)
+    rd, out = RunDir(run), Path(out)
     if out.exists() and not out.is_dir():
         raise AnisdfError(f"--out {out} is an existing file, not a folder")
-    if out.resolve() == run.resolve():
+    if out.resolve() == rd.root.resolve():
         raise AnisdfError("--out must not be the run folder itself")
-    opts = BakeOptions(faces=faces, texture=texture, specular_texture=specular_texture, lobes=lobes,
-                       directions=directions, resolution=resolution)
-    opts.validate()
-    if not 1 <= supersample <= 4:
-        raise AnisdfError(f"--supersample must be between 1 and 4, got {supersample}")
-    if not 0.0 <= pixel_filter <= 2.0:
-        raise AnisdfError(f"--pixel-filter must be between 0 and 2 pixels, got {pixel_filter}")
-    dev = pick_device(device or "auto")
+    o.validate()
+    require_bake_modules()
+    from anisdf.export.asset_files import AssetFolder, write_asset
+    from anisdf.export.bake import bake
+    from anisdf.export.mesh import extract_mesh as mc
+    from anisdf.export.sg_fit import SHARPNESS_RANGE
+
+    opts = o.bake_options()
+    dev = pick_device(o.device or "auto")
     timings: dict[str, float] = {}
     clock = [time.perf_counter()]
 
@@ -67,31 +108,32 @@ def export(run: Path, out: Path, faces: int = 200_000, texture: int = 1024, spec
         timings[name] = round(now - clock[0], 2)
         clock[0] = now
 
-    cfg, model, ck = load_run(run, dev)
+    cfg, model, ck = load_run(rd.root, dev)
     if cfg.appearance.kind != "blend":
         log.info("export: appearance.kind=%s; the lobes are fitted to its colour all the same", cfg.appearance.kind)
-    camera, up = _export_camera(run, cfg, ck)
+    camera, up = _export_camera(rd.root, cfg, ck)
     tick("load")
-    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress)
+    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress)
     tick("marching_cubes")
-    baked = bake(model, mesh, opts, progress=progress, timer=tick)
+    baked = bake(model, mesh, opts, progress=o.progress, timer=tick)
     manifest: dict[str, Any] = {
-        "format": fmt.FORMAT, "version": fmt.VERSION, "anisdf": __version__, "run": str(run.resolve()),
+        "format": fmt.FORMAT, "version": fmt.VERSION, "anisdf": __version__, "run": str(rd.root.resolve()),
         "step": int(ck["state"]["step"]), "frame": "dataset",
-        "faces": len(baked.faces), "vertices": len(baked.vertices), "marching_cubes_resolution": resolution,
-        "faces_requested": faces, "texture": opts.texture, "specular_texture": opts.spec_size,
+        "faces": len(baked.faces), "vertices": len(baked.vertices), "marching_cubes_resolution": o.resolution,
+        "faces_requested": o.faces, "texture": opts.texture, "specular_texture": opts.spec_size,
         "lobes": opts.lobes, "directions": opts.directions, "diffuse_directions": opts.diffuse_directions,
-        "fit_iters": opts.fit_iters, "sharpness_range": list(SHARPNESS_RANGE), "supersample": supersample,
-        "pixel_filter": pixel_filter,
+        "fit_iters": opts.fit_iters, "sharpness_range": list(SHARPNESS_RANGE), "supersample": o.supersample,
+        "pixel_filter": o.pixel_filter,
         "diffuse": "view-independent part of the blended colour w c_view + (1 - w) c_ref: the per-texel fit's "
                    "constant term (hemisphere mean with K = 0)",
         "up": up, "camera": camera, "stats": baked.stats,
     }
-    sizes = write_asset(out, baked, np.asarray(ck["to_world"]), manifest)
-    tick("write")
-    manifest.update(files=sizes, total_bytes=int(sum(sizes.values())), timings=timings,
-                    seconds=round(sum(timings.values()), 2))
-    write_text_atomic(out / fmt.MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    with AssetFolder(out) as folder:
+        sizes = write_asset(folder, baked, np.asarray(ck["to_world"]), manifest)
+        tick("write")
+        manifest.update(files=sizes, total_bytes=int(sum(sizes.values())), timings=timings,
+                        seconds=round(sum(timings.values()), 2))
+        folder.write(fmt.MANIFEST, (json.dumps(manifest, indent=2) + "\n").encode("utf-8"))
     log.info("export: %d faces, %d px diffuse, %d px lobes x %d -> %s (%.1f MB: %s) in %.0f s", len(baked.faces),
              opts.texture, opts.spec_size, opts.lobes, out, manifest["total_bytes"] / 1e6,
              ", ".join(f"{k} {v / 1e6:.2f} MB" for k, v in sizes.items()), manifest["seconds"])
