@@ -1,5 +1,6 @@
 # Two commands on a fresh machine: `make demo` and `make test`.
-PYTHON ?= python3.11
+# PYTHON: any Python that pyproject.toml's requires-python accepts, e.g. `make demo PYTHON=python3.13`.
+PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 # torch is pinned here only to pick the build that lies on the local disk; pyproject keeps a range.
@@ -7,8 +8,19 @@ TORCH  ?= torch==2.13.0
 
 .PHONY: demo test lint bench clean
 
+# Before the venv exists (and unless this is a dry run or only `clean`): stop with one line when $(PYTHON) is too
+# old or lacks venv, warn when the fast CPU kernel cannot be built (scripts/check_python.sh).
+ifeq ($(wildcard $(BIN)/python),)
+ifeq ($(findstring n,$(firstword -$(MAKEFLAGS))),)
+ifneq ($(filter-out clean,$(or $(MAKECMDGOALS),$(BIN)/python)),)
+PYTHON_PROBLEM := $(shell sh scripts/check_python.sh "$(PYTHON)")
+$(if $(PYTHON_PROBLEM),$(error $(PYTHON_PROBLEM)))
+endif
+endif
+endif
+
 $(BIN)/python:
-	$(PYTHON) -m venv $(VENV)
+	$(PYTHON) -m venv $(VENV) || { rm -rf $(VENV); exit 1; }
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q "$(TORCH)"
@@ -23,8 +35,10 @@ $(VENV)/.cluster: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(BIN)/anisdf demo
 
-test: $(VENV)/.installed $(VENV)/.cluster
+lint: $(VENV)/.installed
 	$(BIN)/ruff check src tests benchmarks
+
+test: lint $(VENV)/.cluster
 	$(BIN)/python -m pytest -rs tests
 
 bench: $(VENV)/.installed

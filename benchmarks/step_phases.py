@@ -77,12 +77,12 @@ def main(argv: list[str] | None = None) -> int:
             spent.clear()
             t0 = time.perf_counter()
             for _ in range(args.steps):
-                tr.train_step()
+                stats = tr.train_step()
             total = time.perf_counter() - t0
         finally:
             torch.Tensor.backward = backward
             model_module.march = march
-    print(f"{args.preset}, step {tr.state.step}, {tr.model.last_counts[0]} samples of {tr.state.n_rays} rays: "
+    print(f"{args.preset}, step {tr.state.step}, {stats['n_samples']:.0f} samples of {tr.state.n_rays} rays: "
           f"{total / args.steps * 1e3:.0f} ms a step, {torch.get_num_threads()} threads")
     for name, sec in spent.most_common():
         print(f"  {name:32s} {sec / args.steps * 1e3:7.1f} ms")

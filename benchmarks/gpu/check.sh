@@ -14,7 +14,7 @@ stamp "tests on CUDA"
 timeout 180 python3 -m pytest -rs -p no:cacheprovider tests/test_hash_encoding_fast.py tests/test_data_rays.py \
   tests/test_model_components.py "tests/test_training.py::test_compiled_heads_give_the_eager_gradients[cuda]" \
   > "$OUT/pytest_cuda.txt" 2>&1; tail -6 "$OUT/pytest_cuda.txt"
-stamp "what train.compile fuses"; timeout 60 python3 benchmarks/count_compiled_heads.py --device "$DEV" 2>&1 | tail -4
+stamp "what train.compile fuses"; timeout 60 python3 benchmarks/compiled_kernel_count.py --device "$DEV" 2>&1 | tail -4
 best=eager; best_ms=1e9
 for v in eager compiled; do
   stamp "profile nerf-synthetic, $v"
@@ -28,7 +28,7 @@ left=$(( 570 - $(date +%s) + T0 ))  # seconds to the call's end, less a margin f
 : "${SLICE_MINUTES:=$(python3 -c "print(round(min(3.0, max(0.5, ($left - 45) / 60)), 1))")}"
 stamp "$SLICE_MINUTES minutes of the nerf-synthetic schedule, $best ($best_ms ms/step in the profile)"
 rm -rf runs/slice
-timeout $(( left > 60 ? left - 5 : 55 )) python3 -m anisdf.cli train "$DATA" --out runs/slice --preset nerf-synthetic --device "$DEV" \
+timeout $(( left > 60 ? left - 5 : 55 )) python3 -m anisdf train "$DATA" --out runs/slice --preset nerf-synthetic --device "$DEV" \
   --max-minutes "$SLICE_MINUTES" --no-progress train.compile=$([ $best = compiled ] && echo true || echo false) \
   > "$OUT/slice_train.txt" 2>&1; tail -3 "$OUT/slice_train.txt"
 cp runs/slice/log.jsonl "$OUT/slice_log.jsonl" 2>/dev/null

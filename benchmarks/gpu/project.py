@@ -3,9 +3,10 @@
 ``python benchmarks/gpu/project.py LOG [--reference REF] [--from-step 1000] [--steps 20000]``
 
 ``LOG`` and ``REF`` are ``log.jsonl`` files of ``anisdf train --preset nerf-synthetic`` on bunny_plastic (``time``:
-seconds of training, validation and checkpoints included). ``REF`` defaults to the session-3 H100 run, which
-covered 16,711 of 20,000 steps in 15 minutes. A 15-minute device lease cannot hold a 15-minute run besides the
-machine's start and the checks, so the target is judged on a projection, which this prints two ways:
+seconds of training, validation and checkpoints included). ``REF`` defaults to the H100 run of 2026-11-23
+(``records/2026-11-23-h100``), which covered 16,711 of 20,000 steps in 15 minutes. A 15-minute device lease cannot hold
+a 15-minute run besides the machine's start and the checks, so the target is judged on a projection, which this
+prints two ways:
 
 * ``rate``: LOG's own time so far, plus its mean seconds per step over its last ``--window`` steps for the rest;
 * ``scaled``: REF's time for the whole schedule (its steps, extrapolated at its mean rate), times the ratio of the
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-REF = Path(__file__).resolve().parent.parent / "gpu-h100-2026-11-23" / "train_log_nerf-synthetic_15min.jsonl"
+REF = Path(__file__).resolve().parent / "records" / "2026-11-23-h100" / "train_log_nerf-synthetic_15min.jsonl"
 
 
 def read(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,5 @@
 #!/bin/bash
-# session-3 GPU call 1: environment, compiled-kernel tests, encoding bench, step profile, cpu-quick bench
+# GPU call 1 of 2026-11-23 (H100): environment, compiled-kernel tests, encoding bench, step profile, cpu-quick bench
 export PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD/src

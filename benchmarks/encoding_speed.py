@@ -1,4 +1,4 @@
-"""Hash-grid encoding speed, reference vs compiled kernel: ``python benchmarks/bench_encoding.py [--json]``.
+"""Hash-grid encoding speed, reference vs compiled kernel: ``python benchmarks/encoding_speed.py [--json]``.
 
 The code lives in :mod:`anisdf.benchmarks.encoding` so that ``anisdf bench`` can run it from an installed package.
 """

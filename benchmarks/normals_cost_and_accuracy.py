@@ -1,4 +1,4 @@
-"""Normals, analytic vs finite differences: ``python benchmarks/bench_normals.py [--steps N] [--json]``.
+"""Normals, analytic vs finite differences: ``python benchmarks/normals_cost_and_accuracy.py [--steps N] [--json]``.
 
 The code lives in :mod:`anisdf.benchmarks.normals`.
 """

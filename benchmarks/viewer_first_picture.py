@@ -1,4 +1,5 @@
-"""What the web viewer costs: ``python benchmarks/bench_viewer.py RUN [--data DATA] [--steps 150] [--repeats 2]``.
+"""What the web viewer costs: ``python benchmarks/viewer_first_picture.py RUN [--data DATA] [--steps 150]
+[--repeats 2] [--skip-training]``.
 
 1. First picture: ``anisdf view RUN`` (its :func:`~anisdf.viewer.run.open_run`) served to headless Chromium (Debian's
    ``chromium``, SwiftShader WebGL, as the tests use it). Times, from ``page.goto``: the browser's connection, its

@@ -1,6 +1,6 @@
 """Training speed at 1 and 2 data-parallel ranks on this machine (CPU, gloo), on a small synthetic scene.
 
-    python benchmarks/bench_distributed.py [--steps 60] [--preset cpu-quick] [--size 64] [--out DIR] [key=value ...]
+    python benchmarks/data_parallel_speed.py [--steps 60] [--preset cpu-quick] [--size 64] [--out DIR] [key=value ...]
 
 Runs ``python -m anisdf train SCENE --max-steps N`` as one process with 2 threads, one process with 1 thread, and
 ``--nproc 2`` (two ranks of 1 thread each: torchrun's default), and reports for each the steps per second and samples

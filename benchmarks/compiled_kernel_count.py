@@ -1,4 +1,4 @@
-"""What ``train.compile`` fuses: ``python benchmarks/count_compiled_heads.py [--device D] [--points N]``.
+"""What ``train.compile`` fuses: ``python benchmarks/compiled_kernel_count.py [--device D] [--points N]``.
 
 Runs each compiled part of a nerf-synthetic step forward and backward once eagerly, counting the operators that
 launch a kernel (anisdf.benchmarks.opcount), and once compiled, counting the kernels inductor's generated code

@@ -1,5 +1,5 @@
 #!/bin/bash
-# session-3 GPU call 4: wait for the training of call 3, then evaluate it
+# GPU call 4 of 2026-11-23 (H100): wait for the training of call 3, then evaluate it
 export PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD/src
 T0=$(date +%s)

@@ -1,5 +1,5 @@
 #!/bin/bash
-# session-3 GPU call 3: the 15-minute nerf-synthetic training on bunny_plastic, in its own process session
+# GPU call 3 of 2026-11-23 (H100): the 15-minute nerf-synthetic training on bunny_plastic, detached with setsid
 export PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD/src

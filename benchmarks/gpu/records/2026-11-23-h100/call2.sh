@@ -1,5 +1,5 @@
 #!/bin/bash
-# session-3 GPU call 2: compiled-kernel tests (relaxed GPU tolerance), step profile, cpu-quick bench, short full-preset train + eval
+# GPU call 2 of 2026-11-23 (H100): compiled-kernel tests (relaxed GPU tolerance), step profile, cpu-quick bench, short full-preset train + eval
 export PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD/src

@@ -1,6 +1,6 @@
-"""Camera poses of ``anisdf process-data`` against a dataset's given cameras (issue 19).
+"""Camera poses of ``anisdf process-data`` against a dataset's given cameras.
 
-    python benchmarks/colmap_poses.py ../shared/data/dtu_scan65 [--out /tmp/dtu65_sfm] [--matcher exhaustive]
+    python benchmarks/pose_accuracy.py path/to/dtu_scan65 [--out /tmp/dtu65_sfm] [--matcher exhaustive]
 
 Runs process-data on the dataset's images alone (``image/`` or ``images/``), reads the given cameras with
 anisdf's own parser (NeuS ``cameras_sphere.npz``, LLFF ``poses_bounds.npy``, ...), aligns the estimated camera
