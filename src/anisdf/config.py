@@ -6,7 +6,7 @@ the defaults below and merges into them, with OmegaConf, the preset file ``prese
 choices to their ``Literal`` types. The result is a plain :class:`Config` again (cheap to read, picklable). This
 module adds only the spellings OmegaConf does not read (``2**18`` or ``1e3`` for an int, ``(0.9, 0.99)`` for a
 tuple) and turns OmegaConf's errors into one-line :class:`AnisdfError` messages.
-Defaults follow the paper (Sec. 4.1) and the authors' release (see NOTES.md).
+Defaults follow the paper (Sec. 4.1) and the authors' released code and configuration.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ class GeometryConfig:
     level_start_step: int = 5000
     level_every: int = 1000
     """One more level on each grid every ``level_every`` steps after ``level_start_step`` (the first at
-    ``level_start_step + level_every``): coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (NOTES.md)."""
+    ``level_start_step + level_every``): coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (the release's schedule)."""
     features_per_level: int = 2
     log2_hashmap_size: int = 19
     base_resolution: int = 32
@@ -150,9 +150,9 @@ class LossConfig:
     start (Neuralangelo; the release's DTU setting 'with decay')."""
     curvature_fraction: float = 0.25
     """Fraction of the step's samples (at least 1024) on which the curvature term is evaluated: it needs a second
-    SDF query with gradients at perturbed points. Neither the paper nor NOTES.md mentions a subset; on
+    SDF query with gradients at perturbed points. Neither the paper nor the release uses a subset; on
     bunny_plastic's 10-minute cpu-quick run 1.0 ran 27% fewer steps and ended worse (41.03 dB, 3.36 deg, Chamfer
-    0.00426 against 41.63, 2.95, 0.00388; benchmarks/RESULTS.md, session 10), so 0.25 stays."""
+    0.00426 against 41.63, 2.95, 0.00388; benchmarks/RESULTS.md, measured 2026-12-02), so 0.25 stays."""
     orientation: float = 1e-3
     orientation_start: float = -1.0
     """Orientation weight at step 0, ramping linearly to ``orientation`` over ``orientation_ramp_steps``

@@ -13,7 +13,7 @@ dependent random reads at about 15 ns each would give (1 / 15 ns per thread); th
 the reads of many points are independent and mostly hit the cache (one level's slice at a time). On CUDA
 (``--device cuda``) the floor and the per-thread figures are not printed; timings synchronise the device.
 
-Run ``python benchmarks/bench_encoding.py`` (or ``python -m anisdf.benchmarks.encoding``)
+Run ``python benchmarks/encoding_speed.py`` (or ``python -m anisdf.benchmarks.encoding``)
 for a table, ``--json`` for one JSON object. The CLI calls
 :func:`bench_encoding`.
 """

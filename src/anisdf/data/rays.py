@@ -2,7 +2,7 @@
 
 For objects (RGBA images, or opaque photos with object masks) the target colour is the straight RGB
 composited on a background colour, ``rgb * a + bg * (1 - a)``, and the model renders on the same background
-(NOTES.md: random colour while training, white at test).
+(as the authors' release: random colour while training, white at test).
 """
 
 from __future__ import annotations

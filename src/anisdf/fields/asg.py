@@ -5,7 +5,7 @@
 The lobe frames are fixed: ``n_theta x n_phi`` axes ``z`` spread over the sphere, tangent ``x`` the axis at
 ``theta + pi/2`` and bitangent ``y = z x x``. Sharpness (lambda, mu) and the 2-channel amplitude xi are predicted
 per point by a small network ``f_par`` (see :mod:`anisdf.fields.radiance_field`). Following the paper, the unit
-reflected direction enters the dot products (the authors' release used (r + 1) / 2; see NOTES.md).
+reflected direction enters the dot products (the authors' release used (r + 1) / 2).
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
 ``c_view = Psi_v(x, SH(d), n, F)`` (Eq. 10); ``c_ref = Psi_r(ASG(omega_r), omega_r, n.v)`` (Eq. 10) with
 ``omega_r = d - 2 (d.n) n`` (Eq. 7) and ASG parameters ``lambda, mu, xi = f_par(F, n)`` (Eq. 9);
 ``w = sigmoid(Psi_w(x, n, F))`` (Eq. 11) and ``C = w c_view + (1 - w) c_ref`` (Eq. 12). ``x`` is the position in
-the unit sphere; the release feeds [F, n] only (NOTES.md), the paper's Eqs. 10-11 name ``x`` too, and we follow the
-paper. ``n.v`` as an extra input of ``Psi_r`` is the release's.
+the unit sphere, as the paper's Eqs. 10-11 name it (the release's geometry appends the position to its feature F,
+so its heads see it too). ``n.v`` as an extra input of ``Psi_r`` is the release's.
 Ablations: ``appearance.kind=pe`` replaces the ASG features by a positional encoding of omega_r;
 ``appearance.kind=view`` keeps the view branch only.
 """

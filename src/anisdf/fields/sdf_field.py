@@ -2,7 +2,7 @@
 
 Two parallel hash grids, each with its own MLP, predict ``(SDF, F)``; the outputs are fused (Eq. 6):
 ``SDF = SDF^c + SDF^f`` and ``F = F^c + F^f`` (``geometry.fusion=mean`` averages them, as the authors'
-release does). Following the release (NOTES.md), both grids start at the base resolution with the same
+release does). Following the authors' release, both grids start at the base resolution with the same
 per-level scale; the coarse grid holds levels ``1..m`` and starts with ``coarse_start_levels`` active, the fine grid
 holds ``1..L`` and starts with its first ``m`` active, so that its trainable set is ``m..L`` (Eq. 5) and moves with
 ``m``. Both switch on one more level every ``level_every`` steps after ``level_start_step`` (release: coarse 4 -> 10,

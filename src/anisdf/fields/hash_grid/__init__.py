@@ -1,4 +1,4 @@
-"""Multiresolution hash grid (Mueller et al. 2022), the encoding of both SDF branches (paper Sec. 3.2, Eqs. 4-5).
+"""Multiresolution hash grid (Mueller et al. 2022), the encoding of both SDF branches (paper Sec. 3.2, Eq. 5).
 
 Backends side by side, each importing only what lies below it:
 
