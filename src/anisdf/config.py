@@ -63,7 +63,8 @@ class GeometryConfig:
     level_start_step: int = 5000
     level_every: int = 1000
     """One more level on each grid every ``level_every`` steps after ``level_start_step`` (the first at
-    ``level_start_step + level_every``): coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (the release's schedule)."""
+    ``level_start_step + level_every``): coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (the release's
+    schedule)."""
     features_per_level: int = 2
     log2_hashmap_size: int = 19
     base_resolution: int = 32

@@ -1,9 +1,9 @@
 """Background of unbounded scenes: a small NeRF outside the bounding sphere, in contracted space.
 
 The SDF covers the sphere of ``radius``; what lies beyond (Mip-NeRF 360 scenes, unmasked photos) is a density +
-colour field on a hash grid over the contraction of Mip-NeRF 360 (the authors' release: "a separate background NeRF (hash grid,
-contracted space)"). Each ray is sampled uniformly in disparity from where it leaves the sphere to ``far``; what the
-background NeRF leaves transparent takes a direction-only environment colour (the sky at infinity).
+colour field on a hash grid over the contraction of Mip-NeRF 360 (the authors' release: "a separate background NeRF
+(hash grid, contracted space)"). Each ray is sampled uniformly in disparity from where it leaves the sphere to ``far``;
+what the background NeRF leaves transparent takes a direction-only environment colour (the sky at infinity).
 """
 
 from __future__ import annotations
