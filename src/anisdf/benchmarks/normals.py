@@ -2,8 +2,8 @@
 
 ``python benchmarks/normals_cost_and_accuracy.py [--steps 300] [--size 96] [--json]`` trains the analytic
 torus-and-sphere scene (written by :mod:`anisdf.data.synthetic`, so the true SDF and normals are known everywhere) with
-the cpu-quick preset once per normal mode, the same number of steps each, and prints a table: ms per step, samples/s, test PSNR,
-the angle between the learned SDF gradient and the true normal on the true surface, and |SDF| there.
+the cpu-quick preset once per normal mode, the same number of steps each, and prints a table: ms per step, samples/s,
+test PSNR, the angle between the learned SDF gradient and the true normal on the true surface, and |SDF| there.
 """
 
 from __future__ import annotations

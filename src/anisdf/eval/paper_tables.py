@@ -2,7 +2,8 @@
 
 Every number below is copied from the paper's row "Ours" of each table (the table is named beside it). Units are those
 our metrics report (``docs/evaluation.md``): PSNR in dB, normal MAE in degrees, NeRF-synthetic Chamfer in scene units
-(the paper prints it in units of 1e-3, so 4.39 there is 0.00439 here), DTU Chamfer in millimetres (the official DTU protocol, as the paper's Table 3).
+(the paper prints it in units of 1e-3, so 4.39 there is 0.00439 here), DTU Chamfer in millimetres (the official DTU
+protocol, as the paper's Table 3).
 """
 
 from __future__ import annotations
