@@ -183,6 +183,44 @@ def test_a_mesh_goes_to_the_browser_only_when_ticked_and_thinned(viewed_run, mon
         viewer.close()
 
 
+def test_a_browser_starts_at_the_cameras_distance_looking_at_the_centre_among_frustums_sized_to_the_scene(
+        viewed_run, toy_scene):
+    """The first view: at the training cameras' mean distance from the unit sphere's centre, looking at it with their
+    mean up, where no camera stands; each frustum reaches a fixed fraction of that distance, in a scene of any size."""
+    from anisdf.data.dataparsers import load_scene
+    from anisdf.data.orbit import up_direction
+    from anisdf.tasks.loading import load_run
+    from anisdf.viewer.server import FRUSTUM_DEPTH
+
+    _, model, _ = load_run(viewed_run)
+    scene = load_scene(toy_scene, downscale=1)
+    train = scene.splits["train"]
+    c2w = scene.cameras.c2w.clone()
+    depths = []
+    for size in (1.0, 3.0):  # the same cameras, three times as far
+        scene.cameras.c2w = torch.cat([c2w[:, :, :3], c2w[:, :, 3:] * size], -1)
+        centres = scene.cameras.c2w[train, :, 3].numpy().astype(np.float64)
+        dist = float(np.linalg.norm(centres, axis=1).mean())
+        viewer = Viewer(model, scene, port=_free_port())
+        try:
+            start = viewer.server.initial_camera
+            eye = np.asarray(start.position)
+            assert np.linalg.norm(eye) == pytest.approx(dist, rel=1e-6)
+            assert np.allclose(start.look_at, 0.0)
+            assert np.allclose(start.up, up_direction(scene.cameras.c2w[train]).numpy(), atol=1e-6)
+            home = viewer.home.c2w
+            assert np.allclose(home[:, 3], eye) and np.allclose(home[:, 2], -eye / dist, atol=1e-9)  # at the centre
+            assert np.dot(-home[:, 1], start.up) > 0.5  # the picture's up is the cameras' up
+            assert len(viewer.frustums) == len(train)
+            depth = [f.scale * f.compute_canonical_frustum_size()[2] for f in viewer.frustums]
+            assert np.allclose(depth, FRUSTUM_DEPTH * dist, rtol=1e-6) and FRUSTUM_DEPTH <= 0.15
+            assert np.linalg.norm(centres - eye, axis=1).min() > 2 * depth[0]  # no frustum at the eye
+            depths.append(depth[0])
+        finally:
+            viewer.close()
+    assert depths[1] == pytest.approx(3 * depths[0], rel=1e-6)
+
+
 def test_the_step_hook_changes_nothing_and_costs_nothing_without_a_browser(toy_scene, tmp_path):
     from anisdf.config import load_config
     from anisdf.data.dataparsers import load_scene

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from anisdf.data.orbit import look_at, up_direction
 from anisdf.errors import AnisdfError
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.models.views import MAP_NAMES
@@ -36,6 +37,12 @@ REST_SECONDS = 0.25
 """A camera unchanged this long counts as resting: its picture is refined."""
 MESH_FACES = 200_000
 """The mesh shown in the browser is decimated to at most this many faces."""
+FRUSTUM_DEPTH = 0.06
+"""A training camera's frustum reaches this fraction of the cameras' mean distance from the centre towards it."""
+FRUSTUM_LINE_PX = 1.5
+"""Width of the frustums' lines, in screen pixels."""
+HOME_NEIGHBOURS = 6
+"""A browser's first view is halfway from the first training camera to one of this many nearest neighbours."""
 
 
 def _display_mesh(mesh: Any) -> Any:
@@ -43,6 +50,37 @@ def _display_mesh(mesh: Any) -> Any:
     from anisdf.export.bake import decimate
 
     return decimate(mesh, MESH_FACES)
+
+
+def home_view(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """A browser's first view of the scene seen by the training cameras ``c2w`` [N, 3, 4] (normalised frame): its
+    pose [3, 4] (OpenCV axes), the cameras' mean up direction, and their mean distance from the centre.
+
+    The view looks at the centre of the unit sphere (the origin) from the cameras' mean distance, with their up,
+    from beside the first camera: halfway to whichever of its :data:`HOME_NEIGHBOURS` nearest neighbours leaves the
+    eye farthest from every camera, so that no frustum sits at the eye or fills the picture."""
+    centres = c2w[:, :, 3]
+    norms = np.linalg.norm(centres, axis=1)
+    dist = float(norms.mean())
+    ways = centres / np.maximum(norms, 1e-12)[:, None]
+    way, clearance = ways[0], 0.0
+    for k in np.argsort(np.linalg.norm(centres - centres[0], axis=1))[1:HOME_NEIGHBOURS + 1]:
+        mid = ways[0] + ways[k]
+        if np.linalg.norm(mid) < 1e-6:  # opposite cameras
+            continue
+        mid = mid / np.linalg.norm(mid)
+        gap = float(np.linalg.norm(ways - mid, axis=1).min())
+        if gap > clearance:
+            way, clearance = mid, gap
+    up = up_direction(c2w).numpy()
+    return look_at(way * dist, np.zeros(3), up).numpy(), up, dist
+
+
+def frustum_scale(fov: float, aspect: float, dist: float) -> float:
+    """viser's ``scale`` for a frustum whose image plane is :data:`FRUSTUM_DEPTH` x ``dist`` from its apex (viser
+    scales a frustum to a constant volume: its depth at scale 1 is ``cbrt(3 / (tan(fov / 2)^2 aspect))``)."""
+    half = float(np.tan(fov / 2.0))
+    return FRUSTUM_DEPTH * max(dist, 1e-3) * float(np.cbrt(half * half * aspect / 3.0))
 
 
 def import_viser():  # noqa: ANN201
@@ -150,7 +188,7 @@ class Viewer:
         self.gui_mesh = None
         self.eval_folder = None
         self.home: ViewCamera | None = None
-        """The first training view, where a new browser's camera starts (None without a scene)."""
+        """Where a new browser's camera starts (:func:`home_view`; None without a scene)."""
         if scene is not None:
             self._add_cameras(scene, max_cameras)
         self.server.on_client_connect(self._connect)
@@ -180,12 +218,8 @@ class Viewer:
         if len(idx) > max_cameras:
             idx = [idx[int(i)] for i in np.linspace(0, len(idx) - 1, max_cameras)]
         c2w = cams.c2w.cpu().numpy().astype(np.float64)
-        centres = c2w[idx, :, 3]
-        up = -c2w[idx, :, 1].mean(0)  # OpenCV y points down
-        up = up / max(np.linalg.norm(up), 1e-9)
+        home, up, dist = home_view(c2w[idx])
         self.server.scene.set_up_direction(up)
-        dist = float(np.median(np.linalg.norm(centres, axis=1)))
-        scale = 0.08 * max(dist, 1e-3)
         fov = [2.0 * float(np.arctan(0.5 * cams.height / float(cams.fy[i]))) for i in idx]
         aspect = cams.width / cams.height
         thumb = (max(1, round(96 * min(1.0, aspect))), max(1, round(96 / max(1.0, aspect))))  # (w, h)
@@ -196,17 +230,16 @@ class Viewer:
                 img = to_rgb_uint8(np.concatenate([img, cover[i].cpu().numpy()[..., None]], -1))
             img = np.asarray(Image.fromarray(img).resize(thumb, Image.BILINEAR))
             handle = self.server.scene.add_camera_frustum(
-                f"/cameras/{n:04d}", fov=fov[n], aspect=aspect, scale=scale, image=img, format="jpeg",
-                jpeg_quality=80, wxyz=transforms.SO3.from_matrix(c2w[i, :, :3]).wxyz, position=c2w[i, :, 3],
-                color=(40, 90, 200))
+                f"/cameras/{n:04d}", fov=fov[n], aspect=aspect, scale=frustum_scale(fov[n], aspect, dist),
+                thickness=FRUSTUM_LINE_PX, thickness_units="screen", image=img, format="jpeg", jpeg_quality=80,
+                wxyz=transforms.SO3.from_matrix(c2w[i, :, :3]).wxyz, position=c2w[i, :, 3], color=(40, 90, 200))
             handle.on_click(self._go_to_frustum)
             self.frustums.append(handle)
-        first = c2w[idx[0]]
-        self.server.initial_camera.position = tuple(first[:, 3])
+        self.server.initial_camera.position = tuple(home[:, 3])
         self.server.initial_camera.look_at = (0.0, 0.0, 0.0)
         self.server.initial_camera.up = tuple(up)
         self.server.initial_camera.fov = fov[0]
-        self.home = ViewCamera(first, fov[0], aspect)
+        self.home = ViewCamera(home, fov[0], aspect)
 
     @staticmethod
     def _go_to_frustum(event: Any) -> None:
