@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from anisdf.data.orbit import up_direction
 from anisdf.errors import AnisdfError
 from anisdf.export.baked_format import MAX_LOBES
 from anisdf.run_dir import RunDir
@@ -67,7 +68,7 @@ def _export_camera(run: Path, cfg, ck: dict[str, Any]) -> tuple[dict[str, Any] |
         return None, None
     split = scene.splits.get("test") or scene.splits.get("train") or [0]
     T = np.asarray(ck["to_world"], dtype=np.float64)
-    up = -scene.cameras.c2w[split, :, 1].double().mean(0).numpy()  # OpenCV y points down
+    up = up_direction(scene.cameras.c2w[split].double()).numpy()
     up = (T[:3, :3] @ up) / np.linalg.norm(T[:3, :3] @ up)
     cam = dataset_camera(scene, split[0], ck).to_json()
     return cam, up.tolist()

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from anisdf.data.dataparsers._common import GL_TO_CV
 from anisdf.data.dataparsers.colmap import ColmapCamera, camera_intrinsics
 from anisdf.data.normalize import look_at_point
+from anisdf.data.orbit import up_direction
 
 SPHERE_MARGIN = 1.1
 MIN_VISIBLE = 0.75
@@ -147,11 +148,9 @@ def bounding_sphere(poses: Poses) -> Sphere:
 
 
 def up_rotation(c2w: np.ndarray) -> np.ndarray:
-    """[3,3] rotation taking the cameras' mean up direction (OpenCV -y) to +z."""
-    up = -c2w[:, :3, 1].mean(0)
-    if np.linalg.norm(up) < 1e-8:
-        return np.eye(3)
-    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up / np.linalg.norm(up)])
+    """[3,3] rotation taking the cameras' up direction (:func:`~anisdf.data.orbit.up_direction`) to +z."""
+    up = up_direction(c2w).numpy()
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
     return rot.as_matrix()
 
 
