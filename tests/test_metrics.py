@@ -1,4 +1,4 @@
-"""Tests for anisdf.eval.metrics and anisdf.eval.report."""
+"""Tests for anisdf.eval.metrics and the report writer (anisdf.tasks.evaluate.report)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from anisdf.eval.metrics import (
     sample_surface,
     ssim,
 )
-from anisdf.eval.report import format_value, write_report
+from anisdf.tasks.evaluate.report import format_value, write_report
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -1,15 +1,32 @@
-"""Evaluation reports: a small self-contained ``report.html`` and a ``report.md`` with the same numbers."""
+"""Evaluation reports: ``report.html`` (tables, and the figures people look at) and a ``report.md`` with the same
+numbers.
+
+The figures (:mod:`.figures`) are embedded in the page as PNG data; the per-view panels it shows are linked by
+paths relative to the page, so the run folder can be moved or copied whole.
+"""
 
 from __future__ import annotations
 
+import base64
 import html
+import json
+import logging
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from anisdf.errors import AnisdfError
+from anisdf.run_dir import RunDir
 from anisdf.utils.atomic import write_text_atomic
+
+log = logging.getLogger("anisdf")
+
+WORST_VIEWS = 3
 
 _CSS = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; }
@@ -20,7 +37,21 @@ td:first-child, th:first-child { text-align: left; }
 tr.mean td { font-weight: bold; background: #f6f6f6; }
 figure { margin: 0 0 1em 0; }
 img { max-width: 100%; image-rendering: pixelated; }
+img.plot { image-rendering: auto; }
+div.panels { display: flex; flex-wrap: wrap; gap: 1em; }
 """
+
+
+@dataclass
+class FigureSection:
+    """A report section: a heading, a figure (PNG bytes, embedded; None: the note alone says why there is none),
+    a note under it, and panels (image file, caption) shown below, linked relative to the report."""
+
+    title: str
+    anchor: str
+    png: bytes | None
+    note: str
+    panels: list[tuple[Path, str]] = field(default_factory=list)
 
 
 def format_value(v: Any) -> str:
@@ -92,6 +123,26 @@ def _md_table(rows: Sequence[dict[str, Any]], cols: list[str], mean: dict[str, A
     return "\n".join(lines)
 
 
+def _html_section(section: FigureSection, out_dir: Path) -> str:
+    parts = [f'<section id="{html.escape(section.anchor, quote=True)}">', f"<h2>{html.escape(section.title)}</h2>"]
+    if section.png is not None:
+        data = base64.b64encode(section.png).decode("ascii")
+        parts.append(f'<figure><img class="plot" src="data:image/png;base64,{data}" '
+                     f'alt="{html.escape(section.title, quote=True)}"><figcaption>{html.escape(section.note)}'
+                     "</figcaption></figure>")
+    else:
+        parts.append(f"<p>{html.escape(section.note)}</p>")
+    if section.panels:
+        parts.append('<div class="panels">')
+        for path, caption in section.panels:
+            src = html.escape(_rel(path, out_dir), quote=True)
+            parts.append(f'<figure><img src="{src}" alt="{src}"><figcaption>{html.escape(caption)}</figcaption>'
+                         "</figure>")
+        parts.append("</div>")
+    parts.append("</section>")
+    return "\n".join(parts)
+
+
 def flatten(d: dict[str, Any], prefix: str = "") -> list[dict[str, Any]]:
     """``{"a": {"b": 1}, "c": [1, 2]}`` -> rows ``{"setting": "a.b", "value": 1}``, ``{"setting": "c", ...}``."""
     rows: list[dict[str, Any]] = []
@@ -111,8 +162,11 @@ def write_report(
     images: list[Path],
     title: str = "anisdf evaluation",
     protocol: dict[str, Any] | None = None,
+    figures: Sequence[FigureSection] = (),
+    paths: tuple[Path, Path] | None = None,
 ) -> tuple[Path, Path]:
-    """Write ``out_dir/report.html`` and ``out_dir/report.md``; returns both paths.
+    """Write ``out_dir/report.html`` and ``out_dir/report.md`` (or the two ``paths`` in ``out_dir``); returns both
+    paths.
 
     ``metrics``: headline numbers (e.g. ``{"psnr": 33.4, "ssim": 0.96, "chamfer": 4.9e-3}``).
     ``per_view``: one dict per test view, e.g.
@@ -120,6 +174,7 @@ def write_report(
     (columns are the union of keys in first-seen order; a mean row is added for columns numeric in
     every row). ``images``: side-by-side pictures, referenced by path relative to ``out_dir``.
     ``protocol``: how the numbers were measured (nested dict, shown flattened as "a.b" rows).
+    ``figures``: sections shown in report.html after the summary (report.md keeps to the tables).
     Both files are written atomically.
     """
     out_dir = Path(out_dir)
@@ -127,6 +182,7 @@ def write_report(
     cols = _columns(per_view)
     mean = _mean_row(per_view, cols) if cols else None
     head_rows = [{"metric": k, "value": v} for k, v in metrics.items()]
+    html_path, md_path = paths or (out_dir / "report.html", out_dir / "report.md")
     rels = [_rel(Path(p), out_dir) for p in images]
 
     parts = [
@@ -136,6 +192,7 @@ def write_report(
         f"<h1>{html.escape(title)}</h1>",
         "<h2>Summary</h2>",
         _html_table(head_rows, ["metric", "value"], None) if head_rows else "<p>No metrics.</p>",
+        *(_html_section(f, out_dir) for f in figures),
     ]
     proto_rows = flatten(protocol) if protocol else []
     if proto_rows:
@@ -152,7 +209,7 @@ def write_report(
                 f'<figure><img src="{src}" alt="{src}"><figcaption>{html.escape(rel)}</figcaption></figure>'
             )
     parts.append("</body></html>\n")
-    html_path = write_text_atomic(out_dir / "report.html", "\n".join(parts))
+    html_path = write_text_atomic(html_path, "\n".join(parts))
 
     md = [f"# {title}", "", "## Summary", ""]
     md.append(_md_table(head_rows, ["metric", "value"], None) if head_rows else "No metrics.")
@@ -163,5 +220,96 @@ def write_report(
     if rels:
         md += ["", "## Images", ""]
         md += [f"![{Path(rel).stem}]({rel.replace(' ', '%20')})" for rel in rels]
-    md_path = write_text_atomic(out_dir / "report.md", "\n".join(md) + "\n")
+    md_path = write_text_atomic(md_path, "\n".join(md) + "\n")
     return html_path, md_path
+
+
+def read_log(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The training lines (``psnr`` / ``total`` of the step's batch) and validation lines (``val_psnr``) of a
+    log.jsonl, each by step; a step logged twice (a resumed run repeats the steps after its last checkpoint) keeps
+    its last line, and lines that are not JSON objects (one cut short by a kill) are skipped."""
+    train: dict[float, dict[str, Any]] = {}
+    val: dict[float, dict[str, Any]] = {}
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if not isinstance(row, dict) or not isinstance(row.get("step"), int | float):
+            continue
+        if "val_psnr" in row:
+            val[row["step"]] = row
+        if "psnr" in row or "total" in row:
+            train[row["step"]] = row
+    return [train[k] for k in sorted(train)], [val[k] for k in sorted(val)]
+
+
+def training_section(run: Path) -> FigureSection:
+    """The training curve from RUN/log.jsonl, or a line saying why there is none."""
+    from anisdf.tasks.evaluate.figures import training_curve
+
+    path = RunDir(run).log
+    title, anchor = "Training", "training-curve"
+    if not path.is_file():
+        return FigureSection(title, anchor, None, f"No training curve: this run has no {path.name}.")
+    train, val = read_log(path)
+    if not train and not val:
+        return FigureSection(title, anchor, None, f"No training curve: {path.name} has no training lines.")
+    note = f"Train PSNR (of each logged step's batch) and loss from {path.name}, {len(train)} lines; "
+    note += (f"validation: PSNR of the first test view, {len(val)} lines." if val
+             else f"no validation lines in {path.name}.")
+    return FigureSection(title, anchor, training_curve(train, val), note)
+
+
+def worst_views(per_view: Sequence[dict[str, Any]], k: int = WORST_VIEWS) -> list[int]:
+    """Indices of the ``k`` views with the lowest PSNR, worst first."""
+    return sorted(range(len(per_view)), key=lambda i: float(per_view[i]["psnr"]))[:k]
+
+
+def per_view_section(per_view: Sequence[dict[str, Any]], images: Sequence[Path]) -> FigureSection | None:
+    """PSNR per view as a bar chart, with the worst views' panels under it; None without views."""
+    from anisdf.tasks.evaluate.figures import per_view_psnr
+
+    if not per_view or not all("psnr" in r for r in per_view):
+        return None
+    worst = worst_views(per_view)
+    mean = float(np.mean([float(r["psnr"]) for r in per_view]))
+    panels = [(Path(images[i]), f"view {per_view[i].get('view', i)} ({per_view[i].get('image', '')}): PSNR "
+               f"{float(per_view[i]['psnr']):.2f} dB") for i in worst if i < len(images)]
+    note = (f"PSNR of each of the {len(per_view)} views, mean {mean:.2f} dB (dashed); in red the "
+            f"{len(worst)} lowest, whose panels follow.")
+    return FigureSection("PSNR per view", "per-view-psnr", per_view_psnr(per_view, worst), note, panels)
+
+
+def mesh_section(run: Path, mesh_path: Path | None, up: np.ndarray | None) -> FigureSection:
+    """A turntable of the mesh eval scored, else of the one in the run folder, else a line saying there is none."""
+    from anisdf.eval.metrics import load_mesh
+    from anisdf.tasks.evaluate.figures import TURNTABLE_VIEWS, turntable
+
+    title, anchor = "Mesh", "mesh-turntable"
+    path = mesh_path if mesh_path is not None else RunDir(run).existing_mesh()
+    if path is None:
+        return FigureSection(title, anchor, None, "No mesh in this run folder (anisdf extract-mesh RUN writes one).")
+    try:
+        mesh = load_mesh(path)
+    except AnisdfError as e:
+        log.warning("report: no turntable of %s (%s)", path, e)
+        return FigureSection(title, anchor, None, f"No turntable: {path.name} could not be read.")
+    scored = "scored by eval" if mesh_path is not None else "in the run folder, not scored"
+    note = (f"{path.name} ({scored}; {len(mesh.faces):,} faces), {TURNTABLE_VIEWS} views around the cameras' "
+            "vertical axis, shaded by face normal.")
+    return FigureSection(title, anchor, turntable(mesh, up), note)
+
+
+def write_run_report(run: Path, metrics: dict[str, Any], per_view: list[dict[str, Any]], images: list[Path],
+                     protocol: dict[str, Any] | None = None, up: np.ndarray | None = None) -> tuple[Path, Path]:
+    """RUN/report.html and RUN/report.md of an evaluation: :func:`write_report`'s tables, with the training curve
+    (RUN/log.jsonl), PSNR per view with the worst views' panels (``images``, one per row of ``per_view``) and a
+    turntable of the mesh (``metrics["mesh"]``, the one eval scored, else the run folder's) around ``up`` (None:
+    +z)."""
+    run = Path(run)
+    rd = RunDir(run)
+    sections = [training_section(run), per_view_section(per_view, images),
+                mesh_section(run, Path(metrics["mesh"]) if metrics.get("mesh") else None, up)]
+    return write_report(run, metrics, per_view, images, protocol=protocol,
+                        figures=[s for s in sections if s is not None], paths=(rd.report_html, rd.report_md))

@@ -1,0 +1,156 @@
+"""Evaluating a run: PSNR, SSIM, normal MAE on a split, Chamfer against a reference mesh, a baked asset's scores
+(:mod:`.scoring`), the record of how they were measured (:mod:`.protocol`) and the report a user opens
+(:mod:`.report`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from anisdf.errors import AnisdfError
+from anisdf.run_dir import RunDir
+from anisdf.tasks.mesh import MeshOptions
+from anisdf.utils.options import float_at_least, int_at_least, option
+
+log = logging.getLogger("anisdf")
+
+NORMAL_MASKS = ("refnerf", "alpha")
+"""Pixel weights of the normal MAE: refnerf = rendered opacity x ground-truth alpha (Ref-NeRF's eval.py),
+alpha = ground-truth alpha alone (holes in the render count in full)."""
+
+_MESH_NOTE = "; the mesh extract-mesh wrote is scored as it is, this must match it (or pass --re-extract)"
+
+
+@dataclass(kw_only=True)
+class EvalOptions:
+    """What ``anisdf eval`` scores and how (docs/evaluation.md)."""
+
+    split: str = option("test", "the split whose views are scored")
+    max_views: int = option(0, "at most this many views (0: all)", int_at_least(0))
+    eval_downscale: float = option(1.0, "render and score at the dataset's resolution divided by this (default 1, "
+                                   "whatever data.downscale training used)", float_at_least(0.0, strict=True))
+    normal_mask: str = option("refnerf", "normal MAE weights: rendered opacity x ground-truth alpha (Ref-NeRF), or "
+                              "the alpha alone", choices=NORMAL_MASKS)
+    gt_mesh: Path | None = option(None, "reference mesh for the Chamfer distance", Path)
+    chamfer_points: int = option(1_000_000, "points sampled on each mesh for the Chamfer distance", int_at_least(1))
+    chamfer_seed: int = option(0, "seed of the prediction's points (reference: +1)", int_at_least(0))
+    mesh_resolution: int | None = option(None, "marching cubes resolution when eval extracts the mesh (default "
+                                         f"{MeshOptions().resolution})" + _MESH_NOTE, int_at_least(2))
+    remove_floaters: bool | None = option(None, "clean small pieces when eval extracts the mesh (default: not "
+                                          "cleaned)" + _MESH_NOTE)
+    remove_inner: bool | None = option(None, "drop enclosed inner shells when eval extracts the mesh (default: "
+                                       "kept)" + _MESH_NOTE)
+    re_extract: bool = option(False, "extract a new RUN/mesh.ply (and mesh.json) even when extract-mesh wrote one")
+    baked: Path | None = option(None, "also score the asset anisdf export wrote to DIR, rendered as its viewer page "
+                                "draws it (baked_psnr, baked_ssim)", Path, metavar="DIR")
+    device: str | None = option(None, "auto | cpu | cuda[:N] (default auto)")
+    progress: bool = option(True, "show a progress bar over the views", cli=False)
+
+
+def _check(o: EvalOptions) -> dict[str, Any]:
+    """Refuse contradictory or out-of-range options before any work; returns the mesh settings asked for."""
+    if o.normal_mask not in NORMAL_MASKS:
+        raise AnisdfError(f"--normal-mask must be one of {', '.join(NORMAL_MASKS)}, got {o.normal_mask!r}")
+    if not (o.eval_downscale > 0 and np.isfinite(o.eval_downscale)):
+        raise AnisdfError(f"--eval-downscale must be a positive number, got {o.eval_downscale}")
+    if o.chamfer_points <= 0:
+        raise AnisdfError(f"--chamfer-points must be positive, got {o.chamfer_points}")
+    requested = {"resolution": o.mesh_resolution, "remove_floaters": o.remove_floaters,
+                 "remove_inner": o.remove_inner}
+    if o.gt_mesh is None and (o.re_extract or any(v is not None for v in requested.values())):
+        raise AnisdfError("--re-extract, --mesh-resolution, --remove-floaters and --remove-inner choose the mesh the "
+                          "Chamfer distance scores: pass --gt-mesh too")
+    return requested
+
+
+def _dataset_up(scene, ck: dict[str, Any]) -> np.ndarray | None:
+    """The cameras' mean up direction in the dataset's frame (the turntable's vertical axis)."""
+    up = -scene.cameras.c2w[:, :, 1].double().mean(0).cpu().numpy()  # OpenCV: y points down
+    up = np.asarray(ck["to_world"], dtype=np.float64)[:3, :3] @ up
+    norm = float(np.linalg.norm(up))
+    return up / norm if norm > 0 else None
+
+
+def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> dict[str, Any]:
+    """PSNR / SSIM (and normal MAE where the dataset has normal maps) on a split, Chamfer against ``gt_mesh``;
+    writes RUN/eval.json (with a "protocol" object recording every choice), RUN/eval/ images and a report
+    (protocols: docs/evaluation.md). ``changes`` replace fields of ``options`` (:class:`EvalOptions`).
+
+    Views are rendered at the dataset's own resolution divided by ``eval_downscale`` (1: the images on disk, in
+    ``data.images_dir`` when the run reads another folder), whatever ``data.downscale`` training used. The Chamfer
+    distance scores the mesh ``extract-mesh`` wrote (RUN/mesh.json) when there is one; eval extracts one (with the
+    mesh task's defaults, not cleaned) only when there is none, or with ``re_extract``.
+    ``mesh_resolution`` / ``remove_floaters`` / ``remove_inner`` left at None mean "as the existing mesh, else the
+    defaults"; given, they must match the existing mesh (else pass ``re_extract``).
+    ``baked``: a folder ``anisdf export`` wrote from this run; its asset is rendered by the reference renderer (what
+    the viewer page draws) from the same cameras and scored too (``baked_psnr``, ``baked_ssim``).
+    """
+    from tqdm import tqdm
+
+    from anisdf.data.rays import RayDataset, eval_background
+    from anisdf.eval.metrics import load_mesh
+    from anisdf.models.views import panel
+    from anisdf.tasks.evaluate import protocol as record
+    from anisdf.tasks.evaluate import scoring
+    from anisdf.tasks.evaluate.report import write_run_report
+    from anisdf.tasks.loading import load_run, scene_for_run
+    from anisdf.tasks.mesh import mesh_for_eval
+    from anisdf.utils.devices import pick_device
+    from anisdf.utils.images import save_image
+
+    o = dataclasses.replace(options or EvalOptions(), **changes)
+    run, rd = Path(run), RunDir(run)
+    requested = _check(o)
+    dev = pick_device(o.device or "auto")
+    gt = load_mesh(o.gt_mesh) if o.gt_mesh is not None else None  # fail early on a bad reference mesh
+    cfg, model, ck = load_run(run, dev)
+    step = int(ck["state"]["step"])
+    mesh_info = mesh_for_eval(run, step, requested, o.re_extract) if o.gt_mesh is not None else None
+    asset = scoring.baked_for_eval(o.baked, step) if o.baked is not None else None
+    scene = scene_for_run(run, cfg, ck, downscale=o.eval_downscale, split=o.split)
+    background = eval_background(scene)
+    if asset is not None and background != "white":
+        raise AnisdfError(f"--baked: {scene.root} has photos without alpha or masks; a baked asset has no background "
+                          "to score against them")
+    data = RayDataset(scene, o.split, device=dev, background=background)
+    ids = scene.splits[o.split]
+    n = len(data) if o.max_views <= 0 else min(o.max_views, len(data))
+    held_out = o.split != "train" and cfg.data.train_split != "all"
+    if not held_out:
+        log.warning("eval: the %s views were used in training (data.train_split=%s): not a held-out score",
+                    o.split, cfg.data.train_split)
+    log.info("eval: %d %s views at %dx%d (dataset resolution / %g; training used / %g)", n, o.split, scene.width,
+             scene.height, o.eval_downscale, cfg.data.downscale)
+    per_view: list[dict[str, Any]] = []
+    images: list[Path] = []
+    normal_names: set[str] = set()
+    for i in tqdm(range(n), desc=f"eval {o.split}", unit="view", disable=not o.progress):
+        row, res, normal_name = scoring.score_view(model, data, i, ids[i], scene, ck, cfg.renderer.eval_chunk_rays,
+                                                   o.normal_mask, asset)
+        per_view.append(row)
+        if normal_name is not None:
+            normal_names.add(normal_name)
+        images.append(save_image(rd.eval_images / f"{i:03d}.png", panel(res)))
+    metrics = scoring.mean_scores(per_view, o.split, baked=asset is not None)
+    protocol = record.views_record(scene, cfg, o.split, n, held_out, o.eval_downscale, background)
+    if asset is not None:
+        protocol["baked"] = record.baked_record(o.baked, asset.manifest)
+    n_maes = sum("normal_mae_deg" in r for r in per_view)
+    if n_maes:
+        protocol["normal_mae"] = record.normal_mae_record(n_maes, normal_names, o.normal_mask,
+                                                          record.alpha_source(scene))
+    if o.gt_mesh is not None:
+        mesh_info = scoring.mesh_to_score(run, mesh_info, requested, o.re_extract, str(dev), o.progress)
+        metrics.update(scoring.chamfer_scores(Path(mesh_info["path"]), gt, o.gt_mesh, o.chamfer_points,
+                                              o.chamfer_seed))
+        protocol["mesh"] = record.mesh_record(mesh_info)
+        protocol["chamfer"] = record.chamfer_record(o.chamfer_points, o.chamfer_seed, o.gt_mesh)
+    metrics.update(steps=step, train_seconds=float(ck["state"]["train_seconds"]), preset=cfg.preset)
+    rd.write_eval({**metrics, "protocol": protocol, "per_view": per_view})
+    write_run_report(run, metrics, per_view, images, protocol=protocol, up=_dataset_up(scene, ck))
+    return {**metrics, "protocol": protocol}
