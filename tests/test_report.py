@@ -36,14 +36,17 @@ def fake_run(root: Path, log: bool = True, validation: bool = True, mesh: bool =
         per_view.append({"view": i, "image": f"r_{i}.png", "psnr": p, "ssim": 0.9})
         images.append(path)
     if log:
-        lines = []
+        lines, val = [], []
         for step in range(10, 210, 10):
             lines.append({"step": step, "time": step * 0.3, "rgb": 0.05 / step, "total": 0.1 / step,
                           "psnr": 15 + 5 * np.log10(step), "n_rays": 256})
             if validation and step % 50 == 0:
-                lines.append({"step": step, "time": step * 0.3 + 0.1, "val_psnr": 14 + 5 * np.log10(step)})
+                val.append({"step": step, "time": step * 0.3 + 0.1, "val_psnr": 14 + 5 * np.log10(step)})
         text = "".join(json.dumps(r) + "\n" for r in lines)
         rd.log.write_text(text + '{"step": 200, "time": 60.0, "psn')  # a last line cut short by a kill
+        if val:  # as the trainer writes them, beside the validation panels
+            rd.validation_log.parent.mkdir(parents=True, exist_ok=True)
+            rd.validation_log.write_text("".join(json.dumps(r) + "\n" for r in val))
     if mesh:
         trimesh.creation.icosphere(subdivisions=2).export(rd.mesh("ply"))
     metrics = {"split": "test", "n_views": len(PSNRS), "psnr": float(np.mean(PSNRS)), "ssim": 0.9}
@@ -75,7 +78,7 @@ def test_report_has_the_three_figures_and_the_worst_views(tmp_path):
         picture = embedded_png(body)
         assert picture.shape[0] > 100 and picture.shape[1] > 300, name
         assert picture.std() > 5, name  # something is drawn
-    assert "validation" in found["training-curve"] and "no validation lines" not in found["training-curve"]
+    assert "(val/psnr.jsonl), 4 lines" in found["training-curve"] and "no validation" not in found["training-curve"]
     # the worst three views, lowest PSNR first, linked relative to the report (the folder can move)
     assert worst_views(per_view) == [3, 1, 5]
     links = re.findall(r'<img src="([^"]+)"', found["per-view-psnr"])
@@ -101,7 +104,7 @@ def test_report_without_log_or_validation_lines_says_so(tmp_path):
     other = tmp_path / "other"
     write_run_report(other, *fake_run(other, validation=False, mesh=False))
     curve = sections(RunDir(other).report_html.read_text())["training-curve"]
-    assert "no validation lines" in curve
+    assert "no validation yet" in curve
     embedded_png(curve)
 
 

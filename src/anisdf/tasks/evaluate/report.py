@@ -245,19 +245,22 @@ def read_log(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
 
 
 def training_section(run: Path) -> FigureSection:
-    """The training curve from RUN/log.jsonl, or a line saying why there is none."""
+    """The training curve from RUN/log.jsonl and RUN/val/psnr.jsonl, or a line saying why there is none."""
     from anisdf.tasks.evaluate.figures import training_curve
 
-    path = RunDir(run).log
+    rd = RunDir(run)
+    path, val_path = rd.log, rd.validation_log
     title, anchor = "Training", "training-curve"
     if not path.is_file():
         return FigureSection(title, anchor, None, f"No training curve: this run has no {path.name}.")
     train, val = read_log(path)
+    if val_path.is_file():
+        val = read_log(val_path)[1]
     if not train and not val:
         return FigureSection(title, anchor, None, f"No training curve: {path.name} has no training lines.")
     note = f"Train PSNR (of each logged step's batch) and loss from {path.name}, {len(train)} lines; "
-    note += (f"validation: PSNR of the first test view, {len(val)} lines." if val
-             else f"no validation lines in {path.name}.")
+    note += (f"validation: PSNR of the first test view ({val_path.parent.name}/{val_path.name}), {len(val)} lines."
+             if val else "no validation yet.")
     return FigureSection(title, anchor, training_curve(train, val), note)
 
 
