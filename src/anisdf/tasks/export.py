@@ -10,11 +10,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from anisdf.data.orbit import up_direction
 from anisdf.errors import AnisdfError
 from anisdf.export.baked_format import MAX_LOBES
 from anisdf.run_dir import RunDir
-from anisdf.tasks.loading import dataset_camera, scene_for_run
+from anisdf.tasks.loading import dataset_camera, dataset_up, scene_for_run
 from anisdf.utils.options import count_at_least, float_at_least, int_at_least, option
 
 if TYPE_CHECKING:
@@ -67,11 +66,8 @@ def _export_camera(run: Path, cfg, ck: dict[str, Any]) -> tuple[dict[str, Any] |
         log.warning("export: %s; the page starts from a default view", e)
         return None, None
     split = scene.splits.get("test") or scene.splits.get("train") or [0]
-    T = np.asarray(ck["to_world"], dtype=np.float64)
-    up = up_direction(scene.cameras.c2w[split].double()).numpy()
-    up = (T[:3, :3] @ up) / np.linalg.norm(T[:3, :3] @ up)
     cam = dataset_camera(scene, split[0], ck).to_json()
-    return cam, up.tolist()
+    return cam, dataset_up(scene, ck, split).tolist()
 
 
 def export(run: Path, out: Path, options: ExportOptions | None = None, **changes: Any) -> dict[str, Any]:

@@ -57,3 +57,11 @@ def dataset_camera(scene, i: int, ck: dict[str, Any]):
                          cams.width, cams.height, dist)
 
 
+def dataset_up(scene, ck: dict[str, Any], views: list[int] | None = None) -> np.ndarray:
+    """The cameras' up direction (:func:`~anisdf.data.orbit.up_direction` of ``views``, default all) turned into the
+    dataset's frame, where meshes and baked assets live."""
+    from anisdf.data.orbit import up_direction
+
+    c2w = scene.cameras.c2w if views is None else scene.cameras.c2w[views]
+    up = np.asarray(ck["to_world"], dtype=np.float64)[:3, :3] @ up_direction(c2w.double().cpu()).numpy()
+    return up / np.linalg.norm(up)

@@ -68,14 +68,6 @@ def _check(o: EvalOptions) -> dict[str, Any]:
     return requested
 
 
-def _dataset_up(scene, ck: dict[str, Any]) -> np.ndarray | None:
-    """The cameras' mean up direction in the dataset's frame (the turntable's vertical axis)."""
-    up = -scene.cameras.c2w[:, :, 1].double().mean(0).cpu().numpy()  # OpenCV: y points down
-    up = np.asarray(ck["to_world"], dtype=np.float64)[:3, :3] @ up
-    norm = float(np.linalg.norm(up))
-    return up / norm if norm > 0 else None
-
-
 def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> dict[str, Any]:
     """PSNR / SSIM (and normal MAE where the dataset has normal maps) on a split, Chamfer against ``gt_mesh``;
     writes RUN/eval.json (with a "protocol" object recording every choice), RUN/eval/ images and a report
@@ -98,7 +90,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     from anisdf.tasks.evaluate import protocol as record
     from anisdf.tasks.evaluate import scoring
     from anisdf.tasks.evaluate.report import write_run_report
-    from anisdf.tasks.loading import load_run, scene_for_run
+    from anisdf.tasks.loading import dataset_up, load_run, scene_for_run
     from anisdf.tasks.mesh import mesh_for_eval
     from anisdf.utils.devices import pick_device
     from anisdf.utils.images import save_image
@@ -152,5 +144,5 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
         protocol["chamfer"] = record.chamfer_record(o.chamfer_points, o.chamfer_seed, o.gt_mesh)
     metrics.update(steps=step, train_seconds=float(ck["state"]["train_seconds"]), preset=cfg.preset)
     rd.write_eval({**metrics, "protocol": protocol, "per_view": per_view})
-    write_run_report(run, metrics, per_view, images, protocol=protocol, up=_dataset_up(scene, ck))
+    write_run_report(run, metrics, per_view, images, protocol=protocol, up=dataset_up(scene, ck))
     return {**metrics, "protocol": protocol}
