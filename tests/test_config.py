@@ -1,8 +1,12 @@
-"""Config: defaults, preset then overrides, the spellings accepted, one-line errors, and the checkpoint round trip."""
+"""Config: defaults, preset then overrides, the spellings accepted, one-line errors, the checkpoint round trip; the
+budget a run says it ends with; every command's options on the command line."""
 
 from __future__ import annotations
 
+import logging
 import pickle
+import subprocess
+import sys
 from importlib import resources
 
 import pytest
@@ -26,7 +30,7 @@ def test_defaults_are_a_plain_config():
     assert type(cfg) is Config and type(cfg.geometry).__name__ == "GeometryConfig"
     assert cfg == Config() == load_config("default")
     assert cfg.preset == "default" and cfg.geometry.kind == "fused" and cfg.appearance.kind == "blend"
-    assert cfg.renderer.samples_per_step == 2**18 and cfg.optim.betas == (0.9, 0.99)
+    assert cfg.train.samples_per_step == 2**18 and cfg.optim.betas == (0.9, 0.99)
     assert pickle.loads(pickle.dumps(cfg)) == cfg
 
 
@@ -88,15 +92,15 @@ def test_bool_strings(text, value):
 
 @pytest.mark.parametrize(("text", "value"), [("1e3", 1000), ("2**14", 16384), ("2.0", 2), ("4096", 4096)])
 def test_int_spellings(text, value):
-    cfg = load_config(None, [f"renderer.samples_per_step={text}"])
-    assert cfg.renderer.samples_per_step == value and type(cfg.renderer.samples_per_step) is int
+    cfg = load_config(None, [f"train.samples_per_step={text}"])
+    assert cfg.train.samples_per_step == value and type(cfg.train.samples_per_step) is int
 
 
 def test_int_spellings_in_a_preset_file(tmp_path):
     path = tmp_path / "big.yaml"
-    path.write_text("renderer:\n  samples_per_step: 2**19\n  max_rays: 1.6e4\n")
+    path.write_text("train:\n  samples_per_step: 2**19\n  max_rays: 1.6e4\n")
     cfg = load_config(str(path))
-    assert cfg.renderer.samples_per_step == 2**19 and cfg.renderer.max_rays == 16000
+    assert cfg.train.samples_per_step == 2**19 and cfg.train.max_rays == 16000
 
 
 def test_set_key_changes_one_value_in_place():
@@ -182,3 +186,79 @@ def test_auto_preset_follows_the_kind_of_data(tmp_path, fmt, masks, kind):
         assert cfg.renderer.background_model == "nerf" and cfg.preset == "mipnerf360"
         (tmp_path / "images_4").mkdir()
         assert auto_preset(tmp_path) == ("mipnerf360", [])
+
+
+def test_a_run_says_which_budget_ends_it(toy_scene, tmp_path, caplog):
+    """``train.max_steps`` under a time budget is the schedule's length, not a step budget: the run says which
+    budget ends it, and warns when that override reads like a step budget."""
+    from test_training import TINY
+
+    from anisdf.tasks.train import train
+
+    with caplog.at_level(logging.INFO, logger="anisdf"):
+        summary = train(toy_scene, tmp_path / "steps", preset="cpu-quick", overrides=TINY, max_steps=2,
+                        progress=False)
+    assert summary["step"] == 2 and "budget: 2 steps" in caplog.messages
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and "budget" in r.getMessage()]
+    caplog.clear()
+
+    def stop_after_2_steps(trainer):  # train()'s setup: stop the 10-minute run after two steps
+        def hook(tr, stats):
+            if tr.state.step >= 2:
+                raise KeyboardInterrupt
+
+        trainer.step_hooks.append(hook)
+
+    timed = [o for o in TINY if not o.startswith("train.max_minutes")]  # cpu-quick's 10 minutes stand
+    with caplog.at_level(logging.INFO, logger="anisdf"):
+        summary = train(toy_scene, tmp_path / "timed", preset="cpu-quick", overrides=[*timed, "train.max_steps=60"],
+                        progress=False, setup=stop_after_2_steps)
+    assert summary["status"] == "interrupted" and summary["step"] == 2
+    assert "budget: 10 min (the schedule's 60 steps laid on it); --max-steps N for a step count" in caplog.messages
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "budget" in r.getMessage()]
+    assert "train.max_steps=60 sets the length of the schedule" in warning and "not a step budget" in warning
+    assert "--max-steps 60" in warning and "train.max_minutes=0" in warning
+
+
+def test_every_command_has_a_help(capsys):
+    from anisdf.cli import COMMANDS, command_module, main
+
+    for name in COMMANDS:
+        mod = command_module(name)
+        assert mod.NAME == name and mod.HELP and callable(mod.run), name
+        with pytest.raises(SystemExit) as info:
+            main([name, "--help"])
+        assert info.value.code == 0 and capsys.readouterr().out.startswith(f"usage: anisdf {name} "), name
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    listing = capsys.readouterr().out
+    assert [line.split()[0] for line in listing.split("COMMAND\n")[1].split("options:")[0].splitlines()
+            if line.startswith("    ") and not line.startswith("     ")] == list(COMMANDS)
+    done = subprocess.run([sys.executable, "-m", "anisdf", "--help"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "extract-mesh" in done.stdout
+
+
+def test_options_come_from_the_task_dataclasses(capsys):
+    """A command's options are its task's: the defaults the library uses are the command line's."""
+    from anisdf.cli import main, parse
+    from anisdf.orchestration.reproduce import ReproduceOptions
+    from anisdf.tasks.evaluate import EvalOptions
+    from anisdf.tasks.mesh import MeshOptions
+
+    def parsed(argv):
+        return parse(argv)[1]
+
+    mesh = parsed(["extract-mesh", "RUN"])
+    assert (mesh.resolution, mesh.format, mesh.remove_floaters) == (MeshOptions().resolution, "ply", False)
+    ev = parsed(["eval", "RUN", "--remove-inner"])
+    assert ev.remove_inner is True and ev.remove_floaters is None and ev.chamfer_points == EvalOptions().chamfer_points
+    rep = parsed(["reproduce", "dtu", "--data", "D", "--out", "O", "--ray", "--seeds", "0,1", "a.b=1"])
+    assert (rep.ray, rep.seeds, rep.overrides, rep.mesh_resolution) == ("local", "0,1", ["a.b=1"],
+                                                                        ReproduceOptions().mesh_resolution)
+    train = parsed(["train", "DATA", "--out", "RUN", "--max-steps", "3", "x.y=1"])
+    assert (train.preset, train.max_steps, train.overrides, train.argv[0]) == ("auto", 3, ["x.y=1"], "train")
+    with pytest.raises(SystemExit):
+        main(["reproduce", "lego", "--data", "D", "--out", "O"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("anisdf reproduce: error: argument table: invalid choice: 'lego'")
+    assert err[0].endswith("(see anisdf reproduce --help)")

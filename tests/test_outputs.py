@@ -1,4 +1,5 @@
-"""The outputs a user holds after training: mesh, renders, video, eval.json and report, chamfer CLI."""
+"""The outputs a user holds after training: mesh, renders, video, eval.json and report, chamfer CLI; a missing
+optional extra stops a command before any work."""
 
 from __future__ import annotations
 
@@ -173,3 +174,41 @@ def test_photos_without_masks_train_validate_render_and_evaluate(tmp_path, capsy
     assert main(["eval", str(out)]) == 0
     metrics = json.loads((out / "eval.json").read_text())
     assert np.isfinite(metrics["psnr"]) and metrics["n_views"] >= 1
+
+
+@pytest.mark.parametrize(("argv", "extra", "module"), [
+    (["export", "RUN", "--out", "OUT"], "export", "xatlas"),
+    (["view", "RUN"], "viewer", "viser"),
+    (["train", "DATA", "--out", "OUT", "--viewer"], "viewer", "viser"),
+    (["batch", "JOBS", "--out", "OUT", "--ray"], "cluster", "ray"),
+])
+def test_a_missing_extra_stops_the_command_before_any_work(trained_run, toy_scene, tmp_path, monkeypatch, capsys,
+                                                           argv, extra, module):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == module else find_spec(name, *a))
+    names = {"RUN": str(trained_run), "OUT": str(tmp_path / "out"), "DATA": str(toy_scene), "JOBS": "jobs.yaml"}
+    assert main([names.get(a, a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    command = " ".join([argv[0], *[a for a in argv if a in ("--viewer", "--ray")]])
+    assert err == [f"anisdf: error: anisdf {command} needs the {extra} extra: pip install 'anisdf[{extra}]' "
+                   f"(missing: {module})"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_train_viewer_serves_the_run_while_it_trains(toy_scene, tmp_path, capsys):
+    """``train --viewer``: the command line hands train() a setup that serves the model between steps."""
+    import socket
+
+    pytest.importorskip("viser", reason="the viewer extra is not installed")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert main(["train", str(toy_scene), "--out", str(tmp_path / "run"), "--preset", "cpu-quick", "--max-steps", "2",
+                 "--no-progress", "--viewer", "--port", str(port), *TINY]) == 0
+    out = capsys.readouterr().out
+    assert f"viewer: open http://127.0.0.1:{port}/" in out and json.loads(out[out.index("{"):])["step"] == 2
+    with socket.socket() as s:  # closed when training ended (a listener would still hold the port)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))

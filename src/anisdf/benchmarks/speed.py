@@ -6,11 +6,13 @@ Speed targets live here, never in timed tests. Results are recorded in benchmark
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import platform
 import resource
 import tempfile
 import time
+from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
 from typing import Any
@@ -19,8 +21,23 @@ import torch
 
 from anisdf.benchmarks.encoding import sync
 from anisdf.config import load_config
+from anisdf.utils.options import float_at_least, option
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "bunny_plastic"
+"""The scene of the time-to-PSNR run when ``--data`` is not given and the folder is there (else a synthetic one)."""
+
+
+@dataclass(kw_only=True)
+class BenchOptions:
+    """What ``anisdf bench`` / :func:`run_bench` measures and how it reports it."""
+
+    as_json: bool = option(False, "print one JSON object", flag="--json")
+    quick: bool = option(False, "skip the time-to-PSNR run")
+    data: Path | None = option(None, "scene of the time-to-PSNR run (default: bunny_plastic in the shared data folder "
+                               "beside the repository when there is one, else a synthetic scene)", Path)
+    minutes: float = option(10.0, "training time of the time-to-PSNR run", float_at_least(0.0, strict=True))
+    device: str = option("auto", "auto (CUDA if available) | cpu | cuda[:N]")
+    preset: str = option("cpu-quick", "configuration of the training-step and time-to-PSNR runs")
 
 
 def _scene(data: Path | None, downscale: float):
@@ -105,14 +122,16 @@ def time_to_psnr(scene, minutes: float, targets: tuple[float, ...] = (30.0, 34.0
     return {"minutes": minutes, "seconds_to_psnr": reached, "curve": curve}
 
 
-def run_bench(as_json: bool = False, quick: bool = False, data: Path | None = None, minutes: float = 10.0,
-              device: str = "auto", preset: str = "cpu-quick") -> dict:
-    """Encoding, training-step and time-to-quality figures on ``device`` (auto: CUDA if there is one)."""
+def run_bench(options: BenchOptions | None = None, **changes: Any) -> dict:
+    """Encoding, training-step and time-to-quality figures on ``device`` (auto: CUDA if there is one); prints them
+    (``as_json``: as one JSON object) and returns them. ``changes`` replace fields of ``options``."""
     from anisdf.benchmarks.encoding import bench_encoding, format_table
     from anisdf.fields.hash_grid import load_fast_encoder
     from anisdf.utils.devices import pick_device
 
-    dev = pick_device(device)
+    o = dataclasses.replace(options or BenchOptions(), **changes)
+    as_json, quick, data, minutes, preset = o.as_json, o.quick, o.data, o.minutes, o.preset
+    dev = pick_device(o.device)
     on_cuda = dev.type == "cuda"
     result: dict[str, Any] = {"date": date.today().isoformat(), "machine": platform.machine(),
                               "cpu_threads": torch.get_num_threads(), "torch": torch.__version__,

@@ -8,16 +8,17 @@ JOBS.yaml is a list of jobs::
       overrides: [train.seed=1]  # optional key=value config overrides
       minutes: 30                # optional time budget (default: the preset's schedule)
 
-and optionally ``max_steps``, ``max_views`` (test views evaluated, 0: all), ``mesh_resolution`` (512),
-``chamfer_points`` (1000000) and ``cpus`` (torch threads; the CPUs asked of Ray). Each job trains DIR/NAME (resuming
-it when it holds a checkpoint), extracts DIR/NAME/mesh.ply and evaluates it into DIR/NAME/eval.json (the Chamfer
-distance against DATA/gt_mesh.ply when the scene has one). DIR/batch.json lists every job with its status, attempts
-and figures, rewritten atomically as each job ends; a rerun skips the jobs already done. Jobs run one by one here,
-or side by side on Ray (orchestration/cluster.py).
+and optionally ``max_steps``, ``max_views`` (test views evaluated, 0: all), ``mesh_resolution`` and
+``chamfer_points`` (default: extract-mesh's and eval's) and ``cpus`` (torch threads; the CPUs asked of Ray). Each job
+trains DIR/NAME (resuming it when it holds a checkpoint), extracts DIR/NAME/mesh.ply and evaluates it into
+DIR/NAME/eval.json (the Chamfer distance against DATA/gt_mesh.ply when the scene has one). DIR/batch.json lists every
+job with its status, attempts and figures, rewritten atomically as each job ends; a rerun skips the jobs already
+done. Jobs run one by one here, or side by side on Ray (orchestration/cluster.py).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -33,11 +34,41 @@ import yaml
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS
 from anisdf.orchestration.cluster import Task, read_attempt, require_ray, run_tasks, train_or_resume
+from anisdf.tasks.evaluate import EvalOptions
+from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.atomic import write_text_atomic
+from anisdf.utils.options import option
 
 log = logging.getLogger("anisdf")
 
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+
+
+def ray_address(text: str) -> str:
+    """``--ray``'s value: local, auto, or a cluster address (not a key=value override)."""
+    if "=" in text:
+        raise ValueError(f"{text!r} is not a Ray address; put key=value overrides before --ray, or write --ray local")
+    return text
+
+
+ray_address.__name__ = "Ray address"
+
+
+def ray_option(what: str) -> Any:
+    """The ``ray`` option of a many-run task: ``what`` (runs, jobs) go to Ray as tasks (None: one by one here)."""
+    return option(None, f"run the {what} as tasks on Ray: alone (or 'local') starts Ray on this machine, 'auto' joins "
+                  "the cluster this machine belongs to, else ray://HOST:10001 or HOST:6379 (anisdf[cluster])",
+                  ray_address, metavar="auto|ADDRESS")
+
+
+@dataclass(kw_only=True)
+class BatchOptions:
+    """Where ``anisdf batch`` / :func:`run_batch` runs the jobs."""
+
+    device: str | None = option(None, "auto | cpu | cuda[:N]")
+    ray: str | None = ray_option("jobs")
+    progress: bool = option(True, "show progress bars (one by one here only)", cli=False)
+    gpus_per_job: float | None = option(None, "GPUs each job asks of Ray", cli=False)
 
 
 @dataclass
@@ -48,9 +79,9 @@ class Job:
     overrides: list[str] = field(default_factory=list)
     minutes: float | None = None
     max_steps: int | None = None
-    max_views: int = 0
-    mesh_resolution: int = 512
-    chamfer_points: int = 1_000_000
+    max_views: int = EvalOptions().max_views
+    mesh_resolution: int = MeshOptions().resolution
+    chamfer_points: int = EvalOptions().chamfer_points
     cpus: int | None = None
 
 
@@ -119,20 +150,21 @@ def run_job(job: dict[str, Any], run: str, device: str | None = None, progress: 
         train_or_resume(Path(j.data), run_dir, j.preset, list(j.overrides), j.minutes, j.max_steps, device, progress)
     except TrainingDiverged as e:
         return {"status": "diverged", "error": str(e)}
-    mesh = extract_mesh(run_dir, resolution=j.mesh_resolution, device=device, progress=progress,
-                                 written_by="batch")
+    mesh = extract_mesh(run_dir, resolution=j.mesh_resolution, device=device, progress=progress, written_by="batch")
     gt = Path(j.data) / "gt_mesh.ply"
     metrics = evaluate(run_dir, max_views=j.max_views, gt_mesh=gt if gt.is_file() else None, device=device,
-                                chamfer_points=j.chamfer_points, progress=progress)
+                       chamfer_points=j.chamfer_points, progress=progress)
     return {"status": "done", **{m: metrics.get(m) for m in METRICS}, "steps": metrics["steps"],
             "train_seconds": round(metrics["train_seconds"], 1), "mesh": str(mesh),
             "seconds": round(time.perf_counter() - t0, 1)}
 
 
-def run_batch(jobs_file: Path, out: Path, ray: str | None = None, device: str | None = None,
-              progress: bool = True, gpus_per_job: float | None = None) -> dict[str, Any]:
+def run_batch(jobs_file: Path, out: Path, options: BatchOptions | None = None, **changes: Any) -> dict[str, Any]:
     """Every job of ``jobs_file`` into ``out``; returns the content of OUT/batch.json. Jobs already done there are
-    kept; a failed job is listed with its error, and the others go on."""
+    kept; a failed job is listed with its error, and the others go on. ``changes`` replace fields of ``options``."""
+    o = dataclasses.replace(options or BatchOptions(), **changes)
+    ray, device, progress = o.ray, o.device, o.progress
+    jobs_file, out = Path(jobs_file), Path(out)
     jobs = load_jobs(jobs_file)
     if ray is not None:
         require_ray()
@@ -173,7 +205,7 @@ def run_batch(jobs_file: Path, out: Path, ray: str | None = None, device: str | 
         write()
 
     write()
-    run_tasks(tasks, on_result, ray_address=ray, gpus_per_task=gpus_per_job)
+    run_tasks(tasks, on_result, ray_address=ray, gpus_per_task=o.gpus_per_job)
     for t in tasks:  # a task that never reported (cannot happen unless Ray lost the driver): say so
         if rows[t.key]["status"] == "pending":
             rows[t.key].update(status="failed", error="no result", attempts=read_attempt(t.run).get("attempt"))

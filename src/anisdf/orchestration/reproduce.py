@@ -17,19 +17,72 @@ import math
 import re
 import shlex
 import time
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS, PaperTable, find_scenes, get_table
+from anisdf.orchestration.batch import ray_option
 from anisdf.orchestration.cluster import machine_info
+from anisdf.tasks.evaluate import EvalOptions
+from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.atomic import write_text_atomic
+from anisdf.utils.options import comma_list, float_at_least, int_at_least, option, positional
 
 log = logging.getLogger("anisdf")
 
 CPU_PRESET = "cpu-quick"
 SCALES = ("paper", "cpu")
+CPU_MINUTES = 10.0
+"""Each run's time budget at the cpu scale unless ``minutes`` or ``max_steps`` is given."""
+
+
+@dataclass(kw_only=True)
+class ReproduceOptions:
+    """How ``anisdf reproduce`` / :func:`reproduce` trains and scores a table's runs."""
+
+    scale: str = option("paper", "paper: the table's preset; cpu: cpu-quick with the table's data settings, "
+                        "--minutes per run", choices=SCALES)
+    scenes: list[str] | None = option(None, "comma-separated scene folder names (default: the paper's)",
+                                      comma_list(str))
+    minutes: float | None = option(
+        None, f"time budget per run (0: none; cpu scale: {CPU_MINUTES:g} unless --max-steps is given)",
+        float_at_least(0.0))
+    seeds: list[int] | str | None = option(
+        None, "comma-separated seeds (train.seed), e.g. 0,1 (default 0)")
+    max_steps: int | None = option(
+        None, "steps per run instead of the preset's (step-based: no time budget unless --minutes)", int_at_least(1))
+    max_views: int = option(EvalOptions().max_views, "evaluate on at most this many test views (0: all)",
+                            int_at_least(0))
+    mesh_resolution: int = option(MeshOptions().resolution, "marching cubes resolution for the Chamfer",
+                                  int_at_least(2))
+    chamfer_points: int = option(EvalOptions().chamfer_points, "points sampled on each mesh for the Chamfer "
+                                 "distance", int_at_least(1))
+    dtu_eval: Path | None = option(
+        None, "folder with DTU's official ObsMask/ and Points/stl/ (default: beside the scenes)", Path)
+    device: str | None = option(None, "auto | cpu | cuda[:N]")
+    ray: str | None = ray_option("runs")
+    cpus_per_run: int | None = option(
+        None, "torch threads of each run, and the CPUs each asks of Ray (default: all here, 1 on Ray)",
+        int_at_least(1))
+    overrides: list[str] = positional("config overrides for every run", metavar="key=value", nargs="*", default=[])
+    command: str | None = option(None, "the command line recorded in reproduce.md", cli=False)
+    progress: bool = option(True, "show progress bars", cli=False)
+
+
+def _seeds(seeds: list[int] | str | None) -> list[int]:
+    """The seeds to run (``"0,1"`` is read as [0, 1]); [0] when none are given."""
+    if isinstance(seeds, str):
+        try:
+            seeds = [int(s) for s in seeds.split(",")]
+        except ValueError:
+            raise AnisdfError(f"--seeds must be comma-separated integers, not '{seeds}'") from None
+    seeds = list(seeds) if seeds else [0]
+    if len(set(seeds)) != len(seeds):
+        raise AnisdfError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
+    return seeds
 
 
 def _data_overrides(preset: str) -> list[str]:
@@ -105,7 +158,7 @@ def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], ta
     if gt is not None and not has_gt and any(p["chamfer"] is not None for p in table.scenes.values()):
         notes.append(f"Chamfer not measured: no {gt.name} in {data}")
     if table.name == "dtu":
-        cd, note = _dtu_chamfer(run, data, scene, dtu_eval, eval_opts.get("mesh_resolution", 512))
+        cd, note = _dtu_chamfer(run, data, scene, dtu_eval, eval_opts["mesh_resolution"])
         if cd is not None:
             metrics["chamfer"] = cd["chamfer"]
         if note:
@@ -116,17 +169,18 @@ def _train_and_eval(data: Path, run: Path, preset: str, overrides: list[str], ta
             "seconds": round(metrics["train_seconds"] + eval_seconds, 1), "notes": notes}
 
 
-def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scenes: list[str] | None = None,
-              minutes: float | None = None, seeds: list[int] | None = None, device: str | None = None,
-              overrides: list[str] | None = None, max_steps: int | None = None, max_views: int = 0,
-              mesh_resolution: int = 512, chamfer_points: int = 1_000_000, dtu_eval: Path | None = None,
-              command: str | None = None, progress: bool = True, ray: str | None = None,
-              cpus_per_run: int | None = None) -> dict[str, Any]:
+def reproduce(table_name: str, data: Path, out: Path, options: ReproduceOptions | None = None,
+              **changes: Any) -> dict[str, Any]:
     """Train and evaluate every (scene, configuration, seed) of table ``table_name`` found under ``data``; returns
-    the content of OUT/reproduce.json. ``minutes`` is each run's time budget (0: none; cpu scale: 10 unless given or
-    ``max_steps`` is, which makes the runs step-based; paper scale: the preset's step schedule unless given);
-    ``overrides`` and ``max_steps`` apply to every run. ``ray``
-    (``local``, ``auto`` or an address) runs them on Ray, ``cpus_per_run`` threads each (and CPUs asked of Ray)."""
+    the content of OUT/reproduce.json; ``changes`` replace fields of ``options``. ``minutes`` is each run's time
+    budget (0: none; cpu scale: :data:`CPU_MINUTES` unless given or ``max_steps`` is, which makes the runs
+    step-based; paper scale: the preset's step schedule unless given); ``overrides`` and ``max_steps`` apply to every
+    run. ``ray`` (``local``, ``auto`` or an address) runs them on Ray, ``cpus_per_run`` threads each (and CPUs asked
+    of Ray)."""
+    o = dataclasses.replace(options or ReproduceOptions(), **changes)
+    scale, scenes, minutes, device, overrides = o.scale, o.scenes, o.minutes, o.device, o.overrides
+    max_steps, dtu_eval, command, progress, ray = o.max_steps, o.dtu_eval, o.command, o.progress, o.ray
+    data, out = Path(data), Path(out)
     table = get_table(table_name)
     if ray is not None:
         from anisdf.orchestration.cluster import require_ray
@@ -134,11 +188,9 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
         require_ray()
     if scale not in SCALES:
         raise AnisdfError(f"--scale must be one of {', '.join(SCALES)}, not '{scale}'")
-    seeds = list(seeds) if seeds else [0]
-    if len(set(seeds)) != len(seeds):
-        raise AnisdfError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
+    seeds = _seeds(o.seeds)
     if scale == "cpu" and minutes is None and max_steps is None:
-        minutes = 10.0
+        minutes = CPU_MINUTES
     if not minutes:  # 0: no time budget
         minutes = None
     found = find_scenes(table, data, scenes)
@@ -164,7 +216,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
         "rows": list(old_rows), "means": {}}
     plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
     _write(out, table, result)
-    eval_opts = {"max_views": max_views, "mesh_resolution": mesh_resolution, "chamfer_points": chamfer_points}
+    eval_opts = {"max_views": o.max_views, "mesh_resolution": o.mesh_resolution, "chamfer_points": o.chamfer_points}
     from anisdf.orchestration.cluster import Task, run_tasks
 
     tasks: list[Task] = []
@@ -178,7 +230,7 @@ def reproduce(table_name: str, data: Path, out: Path, scale: str = "paper", scen
         run = _run_dir(out, name, config, seed)
         log.info("%s: %s %s (preset %s %s)", tag, "submitting" if ray else "training", run, preset, " ".join(ovr))
         meta[tag] = (i, name, config, seed)
-        tasks.append(Task(key=tag, run=run, fn=_train_and_eval, cpus=cpus_per_run, kwargs={
+        tasks.append(Task(key=tag, run=run, fn=_train_and_eval, cpus=o.cpus_per_run, kwargs={
             "data": path, "run": run, "preset": preset, "overrides": ovr, "table": table, "scene": name,
             "max_minutes": minutes, "max_steps": max_steps, "device": device, "progress": progress and not ray,
             "eval_opts": eval_opts, "dtu_eval": dtu_eval}))

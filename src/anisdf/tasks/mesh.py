@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -10,43 +12,63 @@ import numpy as np
 
 from anisdf.errors import AnisdfError
 from anisdf.run_dir import RunDir
+from anisdf.utils.options import int_at_least, option
 
 log = logging.getLogger("anisdf")
 
 FLOATER_MIN_FRACTION = 0.01
 """``remove_floaters``: components under this fraction of the largest one's face count are dropped."""
-MESH_DEFAULTS: dict[str, Any] = {"resolution": 512, "remove_floaters": False, "remove_inner": False}
-"""What ``extract-mesh`` and ``eval`` use unless told otherwise: the mesh as marching cubes found it, not cleaned."""
+MESH_FORMATS = ("ply", "obj", "glb")
 
 
-def extract_mesh(run: Path, resolution: int = 512, fmt: str = "ply", device: str | None = None,
-                 remove_floaters: bool = False, remove_inner: bool = False, progress: bool = True,
-                 written_by: str = "extract-mesh") -> Path:
+@dataclass(kw_only=True)
+class MeshOptions:
+    """How ``anisdf extract-mesh`` / :func:`extract_mesh` meshes a run; ``eval`` extracts with the same defaults: the
+    mesh as marching cubes found it, not cleaned."""
+
+    resolution: int = option(512, "marching-cubes grid cells per axis", int_at_least(2))
+    format: str = option("ply", "file format of RUN/mesh.<format>", choices=MESH_FORMATS)
+    remove_floaters: bool = option(
+        False, f"drop pieces under {FLOATER_MIN_FRACTION:.0%} of the largest one's faces (default: the mesh is not "
+        "cleaned)")
+    remove_inner: bool = option(
+        False, "drop surfaces around pockets enclosed inside the object (no camera outside sees them)")
+    device: str | None = option(None, "auto | cpu | cuda[:N]")
+    progress: bool = option(True, "show a progress bar", cli=False)
+
+
+def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: str = "extract-mesh",
+                 **changes: Any) -> Path:
     """Marching cubes on the SDF, vertex colours from the view branch, written in the dataset's frame as
-    RUN/mesh.<fmt>, with its settings in RUN/mesh.json (which ``eval`` reads). Not cleaned unless asked:
-    ``remove_floaters`` drops small disconnected pieces, ``remove_inner`` the shells around pockets enclosed inside
-    the object (docs/evaluation.md)."""
+    RUN/mesh.<format>, with its settings in RUN/mesh.json (which ``eval`` reads); ``changes`` replace fields of
+    ``options`` (``fmt`` is read as ``format``). Not cleaned unless asked: ``remove_floaters`` drops small
+    disconnected pieces, ``remove_inner`` the shells around pockets enclosed inside the object
+    (docs/evaluation.md)."""
     from anisdf.export.mesh import color_vertices, save_mesh, to_world
     from anisdf.export.mesh import extract_mesh as mc
     from anisdf.export.mesh import remove_floaters as drop_floaters
     from anisdf.tasks.loading import load_run
     from anisdf.utils.devices import pick_device
 
-    dev = pick_device(device or "auto")
+    if "fmt" in changes:
+        changes["format"] = changes.pop("fmt")
+    o = dataclasses.replace(options or MeshOptions(), **changes)
+    run = Path(run)
+    dev = pick_device(o.device or "auto")
     cfg, model, ck = load_run(run, dev)
-    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=resolution, device=dev, progress=progress,
-              keep_inner=not remove_inner)
-    if remove_floaters:
+    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress,
+              keep_inner=not o.remove_inner)
+    if o.remove_floaters:
         mesh = drop_floaters(mesh, min_fraction=FLOATER_MIN_FRACTION)
     mesh = color_vertices(mesh, model.diffuse_color, device=dev)
     mesh = to_world(mesh, np.asarray(ck["to_world"], dtype=np.float64))
     rd = RunDir(run)
-    path = rd.mesh(fmt)
-    save_mesh(mesh, path, fmt)
+    path = rd.mesh(o.format)
+    save_mesh(mesh, path, o.format)
     info = {"mesh": path.name, "written_by": written_by, "step": int(ck["state"]["step"]),
-            "resolution": int(resolution), "remove_floaters": bool(remove_floaters),
-            "floater_min_fraction": FLOATER_MIN_FRACTION if remove_floaters else None,
-            "remove_inner": bool(remove_inner), "two_pass": True, "margin": 0.1, "frame": "dataset",
+            "resolution": int(o.resolution), "remove_floaters": bool(o.remove_floaters),
+            "floater_min_fraction": FLOATER_MIN_FRACTION if o.remove_floaters else None,
+            "remove_inner": bool(o.remove_inner), "two_pass": True, "margin": 0.1, "frame": "dataset",
             "vertices": len(mesh.vertices), "faces": len(mesh.faces)}
     rd.write_mesh_info(info)
     log.info("mesh: %d vertices, %d faces -> %s (%s)", len(mesh.vertices), len(mesh.faces), path,

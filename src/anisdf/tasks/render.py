@@ -2,20 +2,37 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from anisdf.errors import AnisdfError
 from anisdf.run_dir import RunDir
+from anisdf.utils.options import int_at_least, option
 
 log = logging.getLogger("anisdf")
 
-def render(run: Path, split: str = "test", video: bool = False, max_views: int = 0, downscale: int = 1,
-           device: str | None = None, n_video_frames: int = 60) -> Path:
-    """Render every view of a split with its maps into RUN/renders/<split>/, and optionally an orbit video."""
+
+@dataclass(kw_only=True)
+class RenderOptions:
+    """What ``anisdf render`` / :func:`render` renders."""
+
+    split: str = option("test", "the split whose views are rendered")
+    video: bool = option(False, "also write an orbit video (MP4)")
+    max_views: int = option(0, "at most this many views (0: all)", int_at_least(0))
+    downscale: int = option(1, "render at the training resolution divided by this", int_at_least(1))
+    device: str | None = option(None, "auto | cpu | cuda[:N]")
+    n_video_frames: int = option(60, "frames of the orbit video", int_at_least(2), cli=False)
+
+
+def render(run: Path, options: RenderOptions | None = None, **changes: Any) -> Path:
+    """Render every view of a split with its maps into RUN/renders/<split>/, and optionally an orbit video;
+    ``changes`` replace fields of ``options``. Returns the folder of the renders."""
     from tqdm import tqdm
 
     from anisdf.data.rays import RayDataset, eval_background
@@ -24,22 +41,24 @@ def render(run: Path, split: str = "test", video: bool = False, max_views: int =
     from anisdf.utils.devices import pick_device
     from anisdf.utils.images import save_image
 
-    dev = pick_device(device or "auto")
+    o = dataclasses.replace(options or RenderOptions(), **changes)
+    run = Path(run)
+    dev = pick_device(o.device or "auto")
     cfg, model, ck = load_run(run, dev)
     scene = scene_for_run(run, cfg, ck)
-    if not scene.splits.get(split):
-        raise AnisdfError(f"split '{split}' is empty for {scene.root}; choose one of {sorted(scene.splits)}")
-    data = RayDataset(scene, split, device=dev, background=eval_background(scene), downscale=downscale)
-    n = len(data) if max_views <= 0 else min(max_views, len(data))
-    out_dir = RunDir(run).renders(split)
-    for i in tqdm(range(n), desc=f"render {split}", unit="view"):
+    if not scene.splits.get(o.split):
+        raise AnisdfError(f"split '{o.split}' is empty for {scene.root}; choose one of {sorted(scene.splits)}")
+    data = RayDataset(scene, o.split, device=dev, background=eval_background(scene), downscale=o.downscale)
+    n = len(data) if o.max_views <= 0 else min(o.max_views, len(data))
+    out_dir = RunDir(run).renders(o.split)
+    for i in tqdm(range(n), desc=f"render {o.split}", unit="view"):
         res = render_view(model, data, i, scene, cfg.renderer.eval_chunk_rays)
         for name in MAP_NAMES:
             key = "weight" if name == "w" else name
             if key in res["maps"]:
                 save_image(out_dir / f"{i:03d}_{key}.png", map_to_image(res["maps"], name))
-    if video:
-        render_orbit(model, scene, cfg, RunDir(run).orbit_video, n_video_frames, downscale, dev)
+    if o.video:
+        render_orbit(model, scene, cfg, RunDir(run).orbit_video, o.n_video_frames, o.downscale, dev)
     return out_dir
 
 

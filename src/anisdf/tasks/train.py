@@ -1,17 +1,48 @@
-"""Training a run, or resuming one: the configuration it goes on with and the preset ``auto`` picks."""
+"""Training a run, or resuming one: the configuration it goes on with, the preset ``auto`` picks, and the budget that
+ends it."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-
-from anisdf.config import Config, config_from_dict, load_config, set_key
+from anisdf.config import Config, config_from_dict, load_config, preset_names, set_key
 from anisdf.errors import AnisdfError
+from anisdf.run_dir import RunDir
+from anisdf.utils.options import float_at_least, int_at_least, option, positional
+
+if TYPE_CHECKING:
+    from anisdf.training.trainer import Trainer
 
 log = logging.getLogger("anisdf")
+
+Setup = Callable[["Trainer"], Callable[[], None] | None]
+"""``train(setup=...)``: called once on rank 0 with the Trainer before the first step (it may add to
+``trainer.step_hooks``); the function it returns, if any, is called when training ends."""
+
+
+@dataclass(kw_only=True)
+class TrainOptions:
+    """How ``anisdf train`` / :func:`train` trains a run (``preset=None``: the built-in defaults)."""
+
+    preset: str | None = option(
+        "auto", f"preset name ({', '.join(preset_names())}) or a YAML file; auto (default): nerf-synthetic for objects "
+        "(alpha or masks), mipnerf360 for opaque photos without masks")
+    overrides: list[str] = positional(
+        "config overrides, e.g. geometry.kind=single appearance.kind=pe renderer.grid_resolution=64",
+        metavar="key=value", nargs="*", default=[])
+    max_steps: int | None = option(
+        None, "train this many steps, with no time budget unless --max-minutes is given too (a preset's "
+        "train.max_steps is the length of its schedule, laid on its time budget when it has one)", int_at_least(1))
+    max_minutes: float | None = option(
+        None, "stop cleanly and save after this many minutes of training in all (0: no limit)", float_at_least(0.0))
+    device: str | None = option(None, "auto | cpu | cuda[:N]")
+    resume: bool = option(False, "continue from RUN/checkpoints/last.pt")
+    progress: bool = option(True, "show a progress bar", cli=False)
 
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
@@ -74,6 +105,8 @@ def data_kind(data: Path) -> str:
 
 def auto_preset(data: Path) -> tuple[str, list[str]]:
     """The preset ``--preset auto`` picks for ``data`` and the overrides it needs, said in the log."""
+    import torch
+
     kind = data_kind(data)
     preset, extra = AUTO_PRESETS[kind], []
     # Mip-NeRF 360's preset reads images_4 as the paper does; a capture without that folder keeps its own images
@@ -87,63 +120,83 @@ def auto_preset(data: Path) -> tuple[str, list[str]]:
     return preset, extra
 
 
-def train(data: Path, out: Path, preset: str | None = None, overrides: list[str] | None = None,
-          max_steps: int | None = None, max_minutes: float | None = None, device: str | None = None,
-          resume: bool = False, progress: bool = True, viewer_port: int | None = None,
-          viewer_host: str = "127.0.0.1") -> dict[str, Any]:
-    """Train a run (``resume``: continue it); with ``viewer_port`` also serve it live in the browser (viewer/) between
-    steps (rank 0 only). Under torchrun every rank calls this and joins the job (training/distributed.py); the summary
-    is the same on every rank."""
-    from anisdf.data.dataparsers import load_scene
-    from anisdf.training import distributed
+def _config(data: Path, out: Path, o: TrainOptions) -> tuple[Config, dict[str, Any] | None]:
+    """The configuration the run trains with: the preset (or the saved one on resume), the overrides, then
+    ``max_steps`` / ``max_minutes``; and the checkpoint it resumes from (None for a new run)."""
     from anisdf.training.checkpoint import load_checkpoint
-    from anisdf.training.trainer import Trainer
-    from anisdf.utils.devices import pick_device
 
-    ckpt_path = out / "checkpoints" / "last.pt"
+    ckpt_path = RunDir(out).checkpoint
     ck = None
-    if resume:
+    if o.resume:
         ck = load_checkpoint(ckpt_path)
-        cfg = _resume_config(out, config_from_dict(ck["config"]), None if preset == "auto" else preset,
-                             overrides or [])
+        cfg = _resume_config(out, config_from_dict(ck["config"]), None if o.preset == "auto" else o.preset,
+                             o.overrides or [])
     else:
         if ckpt_path.exists():
             raise AnisdfError(f"{out}: already holds a run; pass --resume to continue it or choose another --out")
-        extra: list[str] = []
+        preset, extra = o.preset, []
         if preset == "auto":
             preset, extra = auto_preset(data)
-        cfg = load_config(preset, [*extra, *(overrides or [])])
-    if max_steps:
-        cfg.train.max_steps = max_steps
-        if max_minutes is None and not resume:  # `--max-steps N` alone asks for N steps, not the preset's budget
+        cfg = load_config(preset, [*extra, *(o.overrides or [])])
+    if o.max_steps:
+        cfg.train.max_steps = o.max_steps
+        if o.max_minutes is None and not o.resume:  # `--max-steps N` alone asks for N steps, not the preset's budget
             cfg.train.max_minutes = 0.0
-    if max_minutes is not None:
-        cfg.train.max_minutes = max_minutes
-    ctx = distributed.init_from_env(device or cfg.train.device)
-    dev = ctx.device if ctx is not None else pick_device(device or cfg.train.device)
-    viewer = None
+    if o.max_minutes is not None:
+        cfg.train.max_minutes = o.max_minutes
+    return cfg, ck
+
+
+def _say_budget(cfg: Config, o: TrainOptions) -> None:
+    """Log which budget ends the run, and warn when a ``train.max_steps`` override reads as a step budget but names
+    the length of a schedule laid on a time budget."""
+    t = cfg.train
+    if t.max_minutes > 0:
+        hint = "" if o.max_steps else "; --max-steps N for a step count"
+        log.info("budget: %g min (the schedule's %d steps laid on it)%s", t.max_minutes, t.max_steps, hint)
+    else:
+        log.info("budget: %d steps", t.max_steps)
+    given = [v for k, _, v in (item.partition("=") for item in o.overrides or []) if k.strip() == "train.max_steps"]
+    if given and t.max_minutes > 0 and not o.max_steps:
+        steps = given[-1].strip()
+        log.warning("warning: train.max_steps=%s sets the length of the schedule laid on the %g min time budget, not "
+                    "a step budget; for %s steps pass --max-steps %s (or add train.max_minutes=0)", steps,
+                    t.max_minutes, steps, steps)
+
+
+def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: Setup | None = None,
+          **changes: Any) -> dict[str, Any]:
+    """Train a run into ``out`` (``resume``: continue it) and return its summary; ``changes`` replace fields of
+    ``options``. ``setup`` (rank 0 only) sees the Trainer before the first step, e.g. to serve the model live in the
+    browser, and may return a function called at the end. Under torchrun every rank calls this and joins the job
+    (training/distributed.py); the summary is the same on every rank."""
+    from anisdf.data.dataparsers import load_scene
+    from anisdf.training import distributed
+    from anisdf.training.trainer import Trainer
+    from anisdf.utils.devices import pick_device
+
+    o = dataclasses.replace(options or TrainOptions(), **changes)
+    data, out = Path(data), Path(out)
+    cfg, ck = _config(data, out, o)
+    ctx = distributed.init_from_env(o.device or cfg.train.device)
+    dev = ctx.device if ctx is not None else pick_device(o.device or cfg.train.device)
+    close: Callable[[], None] | None = None
     try:
         scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
                            images_dir=cfg.data.images_dir)
         if ctx is None or ctx.is_main:
             for w in scene.warnings:
                 log.warning("warning: %s", w)
-        trainer = Trainer(cfg, scene, out, dev, progress=progress, dist=ctx)
+            _say_budget(cfg, o)
+        trainer = Trainer(cfg, scene, out, dev, progress=o.progress, dist=ctx)
         if ck is not None:
             trainer.load_state_dict(ck)
             if trainer.is_main:
                 log.info("resuming %s at step %d", out, trainer.state.step)
-        if viewer_port is not None and trainer.is_main:
-            from anisdf.viewer import Viewer
-
-            viewer = Viewer(trainer.model, scene, port=viewer_port, host=viewer_host, live=True,
-                            title=f"anisdf · {out.name} (training)")
-            trainer.step_hooks.append(viewer.on_step)
-            print(viewer.announce(), flush=True)
+        if setup is not None and trainer.is_main:
+            close = setup(trainer)
         return trainer.fit()
     finally:
-        if viewer is not None:
-            viewer.close()
+        if close is not None:
+            close()
         distributed.shutdown(ctx)
-
-

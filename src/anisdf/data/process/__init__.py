@@ -8,8 +8,10 @@ summary). A failure leaves everything written so far in place.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,8 +25,17 @@ from anisdf.data.process.export import (
     write_points_ply,
 )
 from anisdf.data.process.inputs import DEFAULT_VIDEO_FRAMES, MIN_IMAGES, import_folder, import_video, is_video
-from anisdf.data.process.sfm import ADVICE, ANISDF_MODELS, check_options, require_pycolmap, run_sfm, undistort
+from anisdf.data.process.sfm import (
+    ADVICE,
+    ANISDF_MODELS,
+    MATCHERS,
+    check_options,
+    require_pycolmap,
+    run_sfm,
+    undistort,
+)
 from anisdf.errors import AnisdfError, DataError
+from anisdf.utils.options import int_at_least, option
 
 log = logging.getLogger("anisdf")
 
@@ -32,26 +43,40 @@ MIN_REGISTERED_FRACTION = 0.5
 """Fewer registered images than this fraction of the input (or fewer than 3) is an error."""
 
 
-def process_data(
-    input_path: str | Path,
-    out: str | Path,
-    matcher: str | None = None,
-    max_frames: int | None = None,
-    downscale: int = 1,
-    camera_model: str = "simple_radial",
-    vocab_tree: str | Path | None = None,
-    force_undistort: bool = False,
-    refine_principal_point: bool = False,
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Pose the photos (folder) or frames (video) at ``input_path`` and write the scene folder ``out``.
+@dataclass(kw_only=True)
+class ProcessDataOptions:
+    """How ``anisdf process-data`` / :func:`process_data` poses a capture."""
 
-    ``matcher`` defaults to sequential for a video and exhaustive for photos; ``max_frames`` (default 150 for
-    a video, all photos) keeps that many evenly spread images; ``downscale`` divides the image size before
-    anything else; ``refine_principal_point`` frees the principal point in a last bundle adjustment (see
-    :func:`anisdf.data.process.sfm.refine_principal_point`). Returns the summary that is also written to
-    ``out/process_data.json``.
+    matcher: str | None = option(None, "image pairs to match (default: sequential for a video, exhaustive for photos)",
+                                 choices=MATCHERS)
+    max_frames: int | None = option(
+        None, f"keep this many evenly spread images (default: {DEFAULT_VIDEO_FRAMES} for a video, every photo)",
+        int_at_least(1))
+    downscale: int = option(1, "divide the image size by this integer first", int_at_least(1))
+    camera_model: str = option(
+        "simple_radial", "COLMAP camera model: simple_radial, radial, opencv, pinhole, ... (others are undistorted)")
+    vocab_tree: Path | None = option(None, "COLMAP vocabulary tree file for --matcher vocab", Path)
+    force_undistort: bool = option(
+        False, "write undistorted pinhole images even when anisdf could model the distortion", flag="--undistort")
+    refine_principal_point: bool = option(
+        False, "free the principal point in a last bundle adjustment (lenses with an off-centre one)")
+    progress: bool = option(True, "show progress bars", cli=False)
+
+
+def process_data(input_path: str | Path, out: str | Path, options: ProcessDataOptions | None = None,
+                 **changes: Any) -> dict[str, Any]:
+    """Pose the photos (folder) or frames (video) at ``input_path`` and write the scene folder ``out``;
+    ``changes`` replace fields of ``options``.
+
+    ``matcher`` defaults to sequential for a video and exhaustive for photos; ``max_frames`` (default
+    :data:`~anisdf.data.process.inputs.DEFAULT_VIDEO_FRAMES` for a video, all photos) keeps that many evenly spread
+    images; ``downscale`` divides the image size before anything else; ``refine_principal_point`` frees the
+    principal point in a last bundle adjustment (see :func:`anisdf.data.process.sfm.refine_principal_point`).
+    Returns the summary that is also written to ``out/process_data.json``.
     """
+    o = dataclasses.replace(options or ProcessDataOptions(), **changes)
+    matcher, max_frames, downscale, camera_model = o.matcher, o.max_frames, o.downscale, o.camera_model
+    vocab_tree, progress = o.vocab_tree, o.progress
     t_start = time.perf_counter()
     src, scene = Path(input_path), Path(out)
     require_pycolmap()
@@ -77,7 +102,7 @@ def process_data(
     log.info("%d images in %s", len(names), images_dir)
 
     sfm = run_sfm(images_dir, names, scene / "colmap", matcher, camera_model,
-                  Path(vocab_tree) if vocab_tree else None, progress, principal_point=refine_principal_point)
+                  Path(vocab_tree) if vocab_tree else None, progress, principal_point=o.refine_principal_point)
     rec = sfm.reconstruction
     registered = {rec.image(i).name for i in rec.reg_image_ids()}
     failed = [n for n in names if n not in registered]
@@ -94,7 +119,7 @@ def process_data(
     model_dir, image_prefix = sfm.model_dir, "images"
     model_name = rec.camera(next(iter(rec.cameras))).model.name
     t0 = time.perf_counter()
-    if force_undistort or model_name not in ANISDF_MODELS:
+    if o.force_undistort or model_name not in ANISDF_MODELS:
         log.info("undistorting %s images to pinhole", model_name)
         model_dir = undistort(sfm.model_dir, images_dir, scene / "colmap" / "undistorted")
         image_prefix = "colmap/undistorted/images"
@@ -154,4 +179,4 @@ def summary_line(summary: dict[str, Any]) -> str:
             f"-> {summary['scene']}/transforms.json (see cameras.png)")
 
 
-__all__ = ["process_data", "summary_line"]
+__all__ = ["ProcessDataOptions", "process_data", "summary_line"]
