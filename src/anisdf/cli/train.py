@@ -15,11 +15,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from anisdf.cli import extras
-from anisdf.cli import view as view_cmd
 from anisdf.cli.options import base_options, field_from
 from anisdf.errors import AnisdfError
 from anisdf.tasks.train import TrainOptions
 from anisdf.utils.options import int_at_least, option, out_folder, port_number, positional
+from anisdf.viewer.server import ViewOptions
 
 if TYPE_CHECKING:
     from anisdf.training.trainer import Trainer
@@ -39,9 +39,9 @@ class Options(TrainOptions):
                         "for several machines run torchrun yourself (docs/distributed.md)", int_at_least(1))
     viewer: bool = option(False, "watch it learn in the browser (viser; rendering between steps, not counted as "
                           "training time)")
-    port: int | None = option(None, f"viewer port (default {view_cmd.PORT}; when taken, the next free one, said at "
+    port: int | None = option(None, f"viewer port (default {ViewOptions.port}; when taken, the next free one, said at "
                               "start)", port_number)
-    host: str = field_from(view_cmd.Options, "host")
+    host: str = field_from(ViewOptions, "host")
     argv: list[str] = option([], "the command line as given (relaunched under torchrun by --nproc)", cli=False)
 
 
@@ -74,7 +74,7 @@ def _live_viewer(opts: Options) -> Callable[[Trainer], Callable[[], None]]:
     def setup(trainer: Trainer) -> Callable[[], None]:
         from anisdf.viewer import Viewer
 
-        viewer = Viewer(trainer.model, trainer.scene, port=opts.port or view_cmd.PORT, host=opts.host, live=True,
+        viewer = Viewer(trainer.model, trainer.scene, port=opts.port or ViewOptions.port, host=opts.host, live=True,
                         title=f"anisdf · {opts.out.name} (training)")
         trainer.step_hooks.append(viewer.on_step)
         print(viewer.announce(), flush=True)
@@ -86,7 +86,7 @@ def _live_viewer(opts: Options) -> Callable[[Trainer], Callable[[], None]]:
 def run(opts: Options) -> int:
     from anisdf.tasks.train import train
 
-    if not opts.viewer and (opts.port is not None or opts.host != view_cmd.HOST):
+    if not opts.viewer and (opts.port is not None or opts.host != ViewOptions.host):
         raise AnisdfError("--port and --host are the viewer's: add --viewer")
     if opts.viewer:
         extras.require("train --viewer", "viewer")

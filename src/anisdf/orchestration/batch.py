@@ -33,7 +33,7 @@ import yaml
 
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS
-from anisdf.orchestration.cluster import Task, read_attempt, require_ray, run_tasks, train_or_resume
+from anisdf.orchestration.cluster import Task, ray_option, read_attempt, require_ray, run_tasks, train_or_resume
 from anisdf.tasks.evaluate import EvalOptions
 from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.atomic import write_text_atomic
@@ -42,23 +42,6 @@ from anisdf.utils.options import option
 log = logging.getLogger("anisdf")
 
 NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
-
-
-def ray_address(text: str) -> str:
-    """``--ray``'s value: local, auto, or a cluster address (not a key=value override)."""
-    if "=" in text:
-        raise ValueError(f"{text!r} is not a Ray address; put key=value overrides before --ray, or write --ray local")
-    return text
-
-
-ray_address.__name__ = "Ray address"
-
-
-def ray_option(what: str) -> Any:
-    """The ``ray`` option of a many-run task: ``what`` (runs, jobs) go to Ray as tasks (None: one by one here)."""
-    return option(None, f"run the {what} as tasks on Ray: alone (or 'local') starts Ray on this machine, 'auto' joins "
-                  "the cluster this machine belongs to, else ray://HOST:10001 or HOST:6379 (anisdf[cluster])",
-                  ray_address, metavar="auto|ADDRESS")
 
 
 @dataclass(kw_only=True)

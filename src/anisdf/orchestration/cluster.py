@@ -28,6 +28,7 @@ import torch
 
 from anisdf.errors import AnisdfError
 from anisdf.run_dir import RunDir
+from anisdf.utils.options import option
 
 log = logging.getLogger("anisdf")
 
@@ -152,6 +153,23 @@ def run_tasks(tasks: list[Task], on_result: OnResult, ray_address: str | None = 
             on_result(t, result, info, None)
         return
     _run_on_ray(tasks, on_result, ray_address, gpus_per_task, max_retries)
+
+
+def read_ray_address(text: str) -> str:
+    """``--ray``'s value: local, auto, or a cluster address (not a key=value override)."""
+    if "=" in text:
+        raise ValueError(f"{text!r} is not a Ray address; put key=value overrides before --ray, or write --ray local")
+    return text
+
+
+read_ray_address.__name__ = "Ray address"
+
+
+def ray_option(what: str) -> Any:
+    """The ``ray`` option of a many-run task: ``what`` (runs, jobs) go to Ray as tasks (None: one by one here)."""
+    return option(None, f"run the {what} as tasks on Ray: alone (or 'local') starts Ray on this machine, 'auto' joins "
+                  "the cluster this machine belongs to, else ray://HOST:10001 or HOST:6379 (anisdf[cluster])",
+                  read_ray_address, metavar="auto|ADDRESS")
 
 
 def require_ray():

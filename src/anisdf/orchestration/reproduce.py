@@ -24,8 +24,7 @@ from typing import Any
 
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS, PaperTable, find_scenes, get_table
-from anisdf.orchestration.batch import ray_option
-from anisdf.orchestration.cluster import machine_info
+from anisdf.orchestration.cluster import machine_info, ray_option
 from anisdf.tasks.evaluate import EvalOptions
 from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.atomic import write_text_atomic

@@ -66,6 +66,7 @@ def render_orbit(model, scene, cfg, path: Path, n_frames: int, downscale: int, d
     """An orbit around the object at the train cameras' mean distance and elevation, with rgb | normal frames."""
     from tqdm import tqdm
 
+    from anisdf.data.orbit import up_direction
     from anisdf.models.views import render_rays_to_maps
     from anisdf.utils.images import normal_to_image, to_uint8
     from anisdf.utils.video import orbit_poses, write_video
@@ -74,8 +75,7 @@ def render_orbit(model, scene, cfg, path: Path, n_frames: int, downscale: int, d
     train_idx = scene.splits["train"]
     centres = cams.c2w[train_idx, :, 3]
     dist = float(centres.norm(dim=-1).mean())
-    up = -cams.c2w[train_idx, :, 1].mean(0)  # OpenCV y points down
-    up = up / up.norm()
+    up = up_direction(cams.c2w[train_idx])
     elev = float(torch.rad2deg(torch.asin((centres / centres.norm(dim=-1, keepdim=True) @ up).mean().clamp(-1, 1))))
     poses = orbit_poses(n_frames, dist, elev, up=up.numpy(), look_at=(0.0, 0.0, 0.0))
     from anisdf.data.cameras import Cameras

@@ -3,6 +3,7 @@ extracted or an evaluation written meanwhile)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -13,7 +14,7 @@ import numpy as np
 
 from anisdf.errors import AnisdfError
 from anisdf.run_dir import RunDir
-from anisdf.viewer.server import Viewer, import_viser
+from anisdf.viewer.server import Viewer, ViewOptions, import_viser
 
 log = logging.getLogger("anisdf")
 
@@ -91,10 +92,10 @@ class RunWatcher:
         return mesh
 
 
-def open_run(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str | None = None,
-             max_resolution: int = 512) -> tuple[Viewer, RunWatcher]:
+def open_run(run: Path, options: ViewOptions | None = None, **changes: Any) -> tuple[Viewer, RunWatcher]:
     """A viewer of the run folder ``run`` with its training cameras (when the dataset is still there), mesh and
-    evaluation."""
+    evaluation; ``changes`` replace fields of ``options``."""
+    o = dataclasses.replace(options or ViewOptions(), **changes)
     import_viser()
     from anisdf.tasks.loading import load_run, scene_for_run
     from anisdf.utils.devices import pick_device
@@ -102,14 +103,15 @@ def open_run(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str |
     run = Path(run)
     if not run.is_dir():
         raise AnisdfError(f"{run}: no such run folder")
-    dev = pick_device(device or "auto")
+    dev = pick_device(o.device or "auto")
     cfg, model, ck = load_run(run, dev)
     try:
         scene = scene_for_run(run, cfg, ck, split="train")
     except AnisdfError as e:
         log.warning("viewer: no training cameras: %s", e)
         scene = None
-    viewer = Viewer(model, scene, port=port, host=host, title=f"anisdf · {run.name}", max_resolution=max_resolution)
+    viewer = Viewer(model, scene, port=o.port, host=o.host, title=f"anisdf · {run.name}",
+                    max_resolution=o.max_resolution)
     watcher = RunWatcher(run, viewer, dev, np.asarray(ck["to_world"]))
     watcher._set_run_status(ck)
     watcher.poll(force=True)
@@ -131,9 +133,8 @@ def serve(viewer: Viewer, watcher: RunWatcher | None = None, stop: threading.Eve
         viewer.close()
 
 
-def view(run: Path, port: int = 7007, host: str = "127.0.0.1", device: str | None = None,
-         max_resolution: int = 512) -> None:
+def view(run: Path, options: ViewOptions | None = None, **changes: Any) -> None:
     """``anisdf view``: serve ``run`` until Ctrl-C."""
-    viewer, watcher = open_run(run, port=port, host=host, device=device, max_resolution=max_resolution)
+    viewer, watcher = open_run(run, options, **changes)
     print(viewer.announce() + " (Ctrl-C to stop)", flush=True)
     serve(viewer, watcher)

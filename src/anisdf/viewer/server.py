@@ -27,9 +27,22 @@ from anisdf.data.orbit import look_at, up_direction
 from anisdf.errors import AnisdfError
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.models.views import MAP_NAMES
+from anisdf.utils.options import int_at_least, option, port_number
 from anisdf.viewer.frames import Frame, ViewCamera, render_frame
 
 log = logging.getLogger("anisdf")
+
+
+@dataclass(kw_only=True)
+class ViewOptions:
+    """How ``anisdf view`` (and ``train --viewer``) serve a run."""
+
+    port: int = option(7007, "viewer port (default 7007; when taken, the next free one, said at start)", port_number)
+    host: str = option("127.0.0.1", "viewer address to listen on (0.0.0.0: every interface)")
+    max_resolution: int = option(512, "long side in pixels of a resting view (a slider in the page changes it)",
+                                 int_at_least(64))
+    device: str | None = option(None, "auto | cpu | cuda[:N]")
+
 
 MIN_PREVIEW = 32
 """Smallest long side (pixels) of a moving camera's picture."""
@@ -47,7 +60,7 @@ HOME_NEIGHBOURS = 6
 
 def _display_mesh(mesh: Any) -> Any:
     """``mesh`` with at most :data:`MESH_FACES` faces (the export's quadric decimation)."""
-    from anisdf.export.bake import decimate
+    from anisdf.export.mesh import decimate
 
     return decimate(mesh, MESH_FACES)
 
@@ -148,8 +161,9 @@ class Viewer:
     thread that owns the model, and :meth:`close` at the end.
     """
 
-    def __init__(self, model: AniSDFModel, scene: Any | None = None, *, port: int = 7007, host: str = "127.0.0.1",
-                 title: str = "anisdf", live: bool = False, max_resolution: int = 512,
+    def __init__(self, model: AniSDFModel, scene: Any | None = None, *, port: int = ViewOptions.port,
+                 host: str = ViewOptions.host, title: str = "anisdf", live: bool = False,
+                 max_resolution: int = ViewOptions.max_resolution,
                  preview_seconds: float = 0.1, refresh_seconds: float = 2.0, refresh_share: float = 0.25,
                  max_cameras: int = 200) -> None:
         viser = import_viser()
