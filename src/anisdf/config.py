@@ -56,8 +56,9 @@ class GeometryConfig:
     n_levels: int = 16
     """L: number of levels of the fine grid (and of the single grid)."""
     coarse_levels: int = 10
-    """m: the coarse grid holds levels 1..m, the fine grid levels m..L (Eq. 5); the fine grid starts with its first
-    m levels active, so the fine set begins where the coarse set ends (the paper's "level m" ablation moves both)."""
+    """m: the coarse grid holds levels 1..m; the fine grid holds levels 1..L and starts with its first m active, all
+    of them trainable from step 0 (the release's layout; Eq. 5 writes the fine set as m..L). The paper's "level m"
+    ablation moves both grids."""
     coarse_start_levels: int = 4
     """Active levels of the coarse grid (of the single grid with ``kind=single``) at the start."""
     level_start_step: int = 5000
@@ -146,9 +147,22 @@ class LossConfig:
     curvature: float = 1e-3
     curvature_ramp_steps: int = 5000
     """The curvature weight ramps linearly from 0 over these steps (release: Shiny 5k)."""
-    curvature_decay: bool = False
-    """After the ramp, divide the curvature weight by the per-level scale for every level switched on since the
-    start (Neuralangelo; the release's DTU setting 'with decay')."""
+    curvature_decay: Literal["off", "levels", "exponential"] = "off"
+    """After the ramp: off keeps the weight; levels divides it by the per-level scale for every level the fine (or
+    single) grid has switched on since the start, so it stops decaying once the last level is on (Neuralangelo);
+    exponential multiplies it by ``exp(-(t - ramp_steps) ln(per_level_scale) / level_every)`` for the whole run (the
+    release's DTU setting). A boolean (older configs and checkpoints) reads as levels (true) or off (false)."""
+    curvature_target: Literal["fused", "coarse"] = "fused"
+    """The normal compared at the tangent-shifted point ``x + eps t``: fused (the fused field's, PermutoSDF's form) or
+    coarse (the coarse branch's, the paper's fused-granularity form and the release's: it ties the fine grid to the
+    coarse one, Sec. 3.2). The coarse target is not detached, as in the release: the loss trains both branches. With
+    ``geometry.kind=single`` both read the one grid."""
+    curvature_form: Literal["squared", "angle"] = "squared"
+    """squared: ``(n . n_eps - 1)^2`` (Eq. 15); angle: ``acos(n . n_eps) / pi`` (the release, after PermutoSDF)."""
+    curvature_eps: Literal["finest", "mean_cells"] = "finest"
+    """Tangent step: finest, the cell of the fine grid's finest active level; mean_cells, the mean of the coarse and
+    fine grids' finest active cells (the release's intent; its code reads the coarse grid's level count for both, so
+    its step is in effect the coarse grid's cell)."""
     curvature_fraction: float = 0.25
     """Fraction of the step's samples (at least 1024) on which the curvature term is evaluated: it needs a second
     SDF query with gradients at perturbed points. Neither the paper nor the release uses a subset; on
@@ -241,9 +255,17 @@ def _hint(key: str) -> Any:
     return tp
 
 
-def _spelling(value: Any, tp: Any) -> Any:
-    """Spellings OmegaConf does not read: ``(a, b)`` or ``"[a, b]"`` for a tuple, ``2**18``, ``1e3`` or ``2.0`` for an
-    int (any other float is left for OmegaConf to refuse)."""
+OLD_VALUES: dict[str, dict[bool, str]] = {"loss.curvature_decay": {True: "levels", False: "off"}}
+"""Keys that were booleans and are now choices: the old values are still read (presets, overrides, checkpoints)."""
+
+
+def _spelling(value: Any, key: str) -> Any:
+    """Spellings OmegaConf does not read for the value of ``key``: ``(a, b)`` or ``"[a, b]"`` for a tuple, ``2**18``,
+    ``1e3`` or ``2.0`` for an int (any other float is left for OmegaConf to refuse), a boolean of :data:`OLD_VALUES`."""
+    tp = _hint(key)
+    old = _parse(value) if isinstance(value, str) and key in OLD_VALUES else value
+    if isinstance(old, bool) and key in OLD_VALUES:
+        return OLD_VALUES[key][old]
     if isinstance(value, str) and typing.get_origin(tp) is tuple and re.fullmatch(r"\s*[(\[].*[)\]]\s*", value):
         return _parse("[" + value.strip()[1:-1] + "]")
     if tp is int and isinstance(value, str | float):
@@ -265,7 +287,7 @@ def _parse(text: str) -> Any:
 
 
 def _prepare(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    return {k: _prepare(v, f"{prefix}{k}.") if isinstance(v, dict) else _spelling(v, _hint(f"{prefix}{k}"))
+    return {k: _prepare(v, f"{prefix}{k}.") if isinstance(v, dict) else _spelling(v, f"{prefix}{k}")
             for k, v in d.items()}
 
 
@@ -295,7 +317,7 @@ def set_key(cfg: Config, key: str, value: Any) -> None:
     key = _moved(key)
     node = OmegaConf.structured(cfg)
     with _errors():
-        OmegaConf.update(node, key, _spelling(value, _hint(key)), merge=True)
+        OmegaConf.update(node, key, _spelling(value, key), merge=True)
     parent, _, name = key.rpartition(".")
     value = operator.attrgetter(key)(OmegaConf.to_object(node))
     setattr(operator.attrgetter(parent)(cfg) if parent else cfg, name, value)
@@ -354,7 +376,7 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
             raise AnisdfError(f"override '{item}' is not of the form key=value")
         key = _moved(key.strip())
         with _errors():
-            OmegaConf.update(node, key, _spelling(_parse(value), _hint(key)), merge=True)
+            OmegaConf.update(node, key, _spelling(_parse(value), key), merge=True)
     return typing.cast(Config, OmegaConf.to_object(node))
 
 

@@ -4,10 +4,11 @@ Two parallel hash grids, each with its own MLP, predict ``(SDF, F)``; the output
 ``SDF = SDF^c + SDF^f`` and ``F = F^c + F^f`` (``geometry.fusion=mean`` averages them, as the authors'
 release does). Following the authors' release, both grids start at the base resolution with the same
 per-level scale; the coarse grid holds levels ``1..m`` and starts with ``coarse_start_levels`` active, the fine grid
-holds ``1..L`` and starts with its first ``m`` active, so that its trainable set is ``m..L`` (Eq. 5) and moves with
-``m``. Both switch on one more level every ``level_every`` steps after ``level_start_step`` (release: coarse 4 -> 10,
-fine 10 -> 16, all active at step 11000). ``geometry.kind=single`` is the ablation: one grid of ``L`` levels switched
-on coarse-to-fine.
+holds ``1..L`` and starts with its first ``m`` active, all of them trainable from step 0 (Eq. 5 writes the fine set
+as ``m..L``; the release, and this code, train its levels ``1..m`` as well). Both switch on one more level every
+``level_every`` steps after ``level_start_step`` (release: coarse 4 -> 10, fine 10 -> 16, all active at step
+11000). ``geometry.kind=single`` is the ablation: one grid of ``L`` levels switched on coarse-to-fine.
+:meth:`SDFField.branch_gradient` gives one branch's normal alone (the curvature term's coarse target).
 
 Analytic normals are computed in closed form through each MLP (:func:`mlp_with_input_grad`) and through the hash
 grid by one first-order ``autograd.grad``: training differentiates them once more for the eikonal and curvature
@@ -209,20 +210,39 @@ class SDFField(nn.Module):
         autograd and 4 queries instead of 7 for central differences.
         """
         if self.cfg.normals == "finite_difference":
-            eps = fd_eps if fd_eps is not None else self.cfg.fd_eps
-            v = torch.tensor(_TETRA, device=x.device, dtype=x.dtype)
-            with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
-                out_sdf, out_feat = self.forward((x[None] + eps * v[:, None]).reshape(-1, 3))
-                f = out_sdf.view(4, -1)
-                grad = (v[:, None, :] * f[..., None]).sum(0) / (4.0 * eps)
-                feat = out_feat.view(4, x.shape[0], out_feat.shape[-1]).mean(0)
-                return f.mean(0), feat, grad
+            return self._finite_difference(self.forward, x, create_graph, fd_eps)
         with torch.autocast(x.device.type, enabled=False):
             xn = self._normalised(x)
             outs, grads = zip(*(b.forward_with_grad(xn, create_graph, self.mlp_fn) for b in self.branches),
                               strict=True)
             out, grad = self._fuse(list(outs)), self._fuse(list(grads))
         return out[:, 0] * self.radius, out[:, 1:], grad
+
+    def branch_gradient(self, x: Tensor, branch: int, create_graph: bool, fd_eps: float | None = None) -> Tensor:
+        """The SDF gradient at ``x`` of one branch alone (0: the coarse grid; with ``kind=single`` the one grid),
+        before fusion: the same method as :meth:`with_gradient` (closed form, or the tetrahedron with
+        ``normals=finite_difference``), differentiable w.r.t. that branch's parameters with ``create_graph``."""
+        b = self.branches[branch]
+        if self.cfg.normals == "finite_difference":
+            def one_branch(p: Tensor) -> tuple[Tensor, Tensor]:
+                with torch.autocast(p.device.type, enabled=False):
+                    out = b(self._normalised(p))
+                return out[:, 0] * self.radius, out[:, 1:]
+            return self._finite_difference(one_branch, x, create_graph, fd_eps)[2]
+        with torch.autocast(x.device.type, enabled=False):
+            return b.forward_with_grad(self._normalised(x), create_graph, self.mlp_fn)[1]
+
+    def _finite_difference(self, fn: Callable[[Tensor], tuple[Tensor, Tensor]], x: Tensor, create_graph: bool,
+                           fd_eps: float | None) -> tuple[Tensor, Tensor, Tensor]:
+        """``fn`` (an SDF and feature) at the tetrahedron's vertices around ``x``: vertex means and the gradient."""
+        eps = fd_eps if fd_eps is not None else self.cfg.fd_eps
+        v = torch.tensor(_TETRA, device=x.device, dtype=x.dtype)
+        with torch.set_grad_enabled(create_graph and torch.is_grad_enabled()):
+            out_sdf, out_feat = fn((x[None] + eps * v[:, None]).reshape(-1, 3))
+            f = out_sdf.view(4, -1)
+            grad = (v[:, None, :] * f[..., None]).sum(0) / (4.0 * eps)
+            feat = out_feat.view(4, x.shape[0], out_feat.shape[-1]).mean(0)
+            return f.mean(0), feat, grad
 
 
 _TETRA = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))

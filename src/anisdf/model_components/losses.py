@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import math
+from typing import Literal
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+ANGLE_CLAMP = 1e-6
+"""The angle form's margin from +-1 for the dot product (the release's)."""
 
 
 def rgb_loss(pred: Tensor, gt: Tensor, kind: str = "mse+l1") -> Tensor:
@@ -22,8 +28,13 @@ def eikonal_loss(grad: Tensor) -> Tensor:
     return ((grad.norm(dim=-1) - 1.0) ** 2).mean()
 
 
-def curvature_loss(normal: Tensor, normal_eps: Tensor) -> Tensor:
-    """Eq. 15 (PermutoSDF): ``(n . n_eps - 1)^2`` between unit normals at ``x`` and at a tangent step from it."""
+def curvature_loss(normal: Tensor, normal_eps: Tensor, form: Literal["squared", "angle"] = "squared") -> Tensor:
+    """Eq. 15 between unit normals at ``x`` and at a tangent step from it, averaged: ``squared``, the paper's
+    ``(n . n_eps - 1)^2``; ``angle``, the release's (PermutoSDF's) ``acos(n . n_eps) / pi``, in [0, 1], with the dot
+    product clamped to ``[-1 + 1e-6, 1 - 1e-6]`` (acos's slope is infinite at +-1)."""
+    if form == "angle":
+        dot = (normal * normal_eps).sum(-1).clamp(-1.0 + ANGLE_CLAMP, 1.0 - ANGLE_CLAMP)
+        return (torch.acos(dot) / math.pi).mean()
     return (((normal * normal_eps).sum(-1) - 1.0) ** 2).mean()
 
 

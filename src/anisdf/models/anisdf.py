@@ -120,11 +120,19 @@ class AniSDFModel(nn.Module):
     def step_size(self) -> float:
         return math.sqrt(3.0) * 2.0 * self.radius / self.cfg.renderer.march_steps
 
-    def finest_cell(self) -> float:
-        """Cell size of the finest active level (sets the curvature perturbation)."""
-        b = self.geometry.branches[-1]
+    def finest_cell(self, branch: int = -1) -> float:
+        """Cell size of the finest active level of a branch (default: the fine grid, or the single one)."""
+        b = self.geometry.branches[branch]
         res = b.grid.spec.resolutions[b.n_active - 1]
         return 2.0 * self.radius / res
+
+    def curvature_eps(self) -> float:
+        """The curvature term's tangent step (``loss.curvature_eps``): the fine grid's finest active cell, or the mean
+        of the coarse and fine grids' finest active cells (one grid: its cell)."""
+        if self.cfg.loss.curvature_eps == "mean_cells":
+            n = len(self.geometry.branches)
+            return sum(self.finest_cell(i) for i in range(n)) / n
+        return self.finest_cell()
 
     def fd_eps(self) -> float:
         e = self.cfg.geometry.fd_eps
@@ -223,13 +231,7 @@ class AniSDFModel(nn.Module):
             weights["eikonal"] = lc.eikonal if sample_share == 1.0 else lc.eikonal * sample_share
         curv_w = self.curvature_weight()
         if curv_w > 0:
-            x, n = smp.x, smp.normal
-            k = min(x.shape[0], max(1024, int(x.shape[0] * lc.curvature_fraction)))
-            dev = generator.device if generator is not None else x.device
-            sel = torch.randperm(x.shape[0], generator=generator, device=dev)[:k].to(x.device)
-            x_eps = L.tangent_perturbation(x[sel], n[sel], self.finest_cell(), generator)
-            _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
-            terms["curvature"] = L.curvature_loss(n[sel], F.normalize(g_eps, dim=-1))
+            terms["curvature"] = self.curvature_term(smp.x, smp.normal, generator)
             weights["curvature"] = curv_w if sample_share == 1.0 else curv_w * sample_share
         orient_w = _ramp(lc.orientation_start, lc.orientation, step, lc.orientation_ramp_steps)
         if orient_w > 0:
@@ -245,14 +247,35 @@ class AniSDFModel(nn.Module):
         terms["total"] = sum(weights[k] * terms[k] for k in weights)
         return terms
 
+    def curvature_term(self, x: Tensor, normal: Tensor, generator: torch.Generator | None) -> Tensor:
+        """Eq. 15 on a random ``curvature_fraction`` of the samples (at least 1024): the unit normal ``n`` at ``x``
+        against the normal at ``x + eps t`` (``t`` a random tangent, ``eps`` from :meth:`curvature_eps`) of the fused
+        field or of the coarse branch (``loss.curvature_target``), in ``loss.curvature_form``."""
+        lc = self.cfg.loss
+        k = min(x.shape[0], max(1024, int(x.shape[0] * lc.curvature_fraction)))
+        dev = generator.device if generator is not None else x.device
+        sel = torch.randperm(x.shape[0], generator=generator, device=dev)[:k].to(x.device)
+        x_eps = L.tangent_perturbation(x[sel], normal[sel], self.curvature_eps(), generator)
+        if lc.curvature_target == "coarse":
+            g_eps = self.geometry.branch_gradient(x_eps, 0, create_graph=True, fd_eps=self.fd_eps())
+        else:
+            _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
+        return L.curvature_loss(normal[sel], F.normalize(g_eps, dim=-1), lc.curvature_form)
+
     def curvature_weight(self) -> float:
-        """Eq. 15's weight: a linear ramp from 0 over ``curvature_ramp_steps``; with ``curvature_decay`` divided by the
-        per-level scale for each level the fine (or single) grid has switched on since the start (Neuralangelo)."""
+        """Eq. 15's weight: a linear ramp from 0 over ``curvature_ramp_steps``, then ``curvature_decay``: levels
+        divides it by the per-level scale for each level the fine (or single) grid has switched on since the start
+        (Neuralangelo); exponential multiplies it by ``exp(-(t - ramp) ln(per_level_scale) / level_every)`` for the
+        rest of the run (the release's DTU schedule)."""
         lc = self.cfg.loss
         w = _ramp(0.0, lc.curvature, self.step_int, lc.curvature_ramp_steps)
-        if lc.curvature_decay:
+        if lc.curvature_decay == "levels":
             b = self.geometry.branches[-1]
             w /= self.cfg.geometry.per_level_scale() ** (b.n_active - b.start_levels)
+        elif lc.curvature_decay == "exponential":
+            g = self.cfg.geometry
+            t = max(self.step_int - lc.curvature_ramp_steps, 0)
+            w *= math.exp(-t * math.log(g.per_level_scale()) / max(g.level_every, 1))
         return w
 
     # ----------------------------------------------------------------------------------------- queries
