@@ -88,23 +88,41 @@ def read_mask(path: Path, downscale: float = 1.0) -> tuple[np.ndarray, tuple[int
     return np.where(arr >= 128, 255, 0).astype(np.uint8), native
 
 
-def read_normal(path: Path, downscale: float = 1.0) -> tuple[np.ndarray, tuple[int, int]]:
-    """Decode a normal map stored as ``(n + 1) / 2`` in RGB with alpha = coverage: float32 ``[H',W',4]``
-    (unit normal xyz, zero where uncovered; coverage in 0..1), resized coverage-weighted."""
+def _decode_normal(path: Path, size: tuple[int, int] | None,
+                   downscale: float) -> tuple[torch.Tensor, torch.Tensor, tuple[int, int], bool]:
+    """xyz = 2 RGB - 1 and alpha of a normal map at ``size`` (else the size on disk / ``downscale``), the size on
+    disk, and whether it was resized (then xyz is coverage-weighted: the mean of xyz x alpha)."""
     with _open(path) as im:
         native = im.size
         arr = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
     n = torch.from_numpy(arr[..., :3] * 2.0 - 1.0)
     a = torch.from_numpy(arr[..., 3:4].copy())
-    w2, h2 = target_size(*native, downscale)
-    if (w2, h2) != native:
-        stacked = torch.cat([n * a, a], dim=-1).permute(2, 0, 1)[None]
-        mode = "area" if w2 <= native[0] and h2 <= native[1] else "bilinear"
-        stacked = F.interpolate(stacked, size=(h2, w2), mode=mode)[0].permute(1, 2, 0)
-        n, a = stacked[..., :3], stacked[..., 3:4]
+    w2, h2 = size or target_size(*native, downscale)
+    if (w2, h2) == native:
+        return n, a, native, False
+    stacked = torch.cat([n * a, a], dim=-1).permute(2, 0, 1)[None]
+    mode = "area" if w2 <= native[0] and h2 <= native[1] else "bilinear"
+    stacked = F.interpolate(stacked, size=(h2, w2), mode=mode)[0].permute(1, 2, 0)
+    return stacked[..., :3], stacked[..., 3:4], native, True
+
+
+def read_normal(path: Path, downscale: float = 1.0) -> tuple[np.ndarray, tuple[int, int]]:
+    """Decode a normal map stored as ``(n + 1) / 2`` in RGB with alpha = coverage: float32 ``[H',W',4]``
+    (unit normal xyz, zero where uncovered; coverage in 0..1), resized coverage-weighted."""
+    n, a, native, _ = _decode_normal(path, None, downscale)
     norm = n.norm(dim=-1, keepdim=True)
     n = torch.where((a > 0) & (norm > 1e-6), n / norm.clamp_min(1e-6), torch.zeros_like(n))
     return torch.cat([n, a], dim=-1).numpy().astype(np.float32), native
+
+
+def read_normal_raw(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """A normal map decoded as :func:`read_normal` does but not renormalised: float32 ``[H',W',4]``, xyz = 2 RGB - 1
+    as stored (coverage-weighted mean when resized to ``size`` = (W', H'); None: as on disk) and coverage in 0..1.
+    Vectors far from unit length mean the file holds another encoding than ``(n + 1) / 2``."""
+    n, a, _, resized = _decode_normal(path, size, 1.0)
+    if resized:
+        n = torch.where(a > 0, n / a.clamp_min(1e-6), torch.zeros_like(n))
+    return torch.cat([n, a], dim=-1).numpy().astype(np.float32)
 
 
 def parallel_map(fn: Callable[[Path], T], paths: Sequence[Path], workers: int | None = None) -> list[T]:

@@ -179,6 +179,35 @@ def decode_normal_png(array: np.ndarray) -> np.ndarray:
     return out
 
 
+NORMAL_LENGTH_TOLERANCE = 0.1
+"""Largest median | |n| - 1 | over a reference normal map's covered pixels for it to be read as ``(n + 1) / 2``: the
+bundled maps (8-bit, 128 px) give 0.002; the same maps saturated (max(n, 0): negative components clipped, as in
+NeRF-synthetic's ``r_i_normal_0001.png``) give 0.27 to 0.46."""
+
+
+def normal_map_problem(decoded: np.ndarray, coverage: np.ndarray,
+                       tolerance: float = NORMAL_LENGTH_TOLERANCE) -> str | None:
+    """Why a reference normal map cannot be scored as world normals stored as ``(n + 1) / 2``, None when it can.
+
+    ``decoded``: [H, W, 3+] xyz = 2 RGB - 1, not renormalised (:func:`anisdf.data.images.read_normal_raw`);
+    ``coverage``: [H, W] in [0, 1], the pixels > 0.5 are judged (none: nothing to judge, None). Over them the
+    vectors must have unit length: median | |n| - 1 | <= ``tolerance``.
+    """
+    xyz = np.asarray(decoded, dtype=np.float64)[..., :3]
+    covered = np.asarray(coverage, dtype=np.float64) > 0.5
+    if xyz.shape[:2] != covered.shape:
+        raise ValueError(f"coverage shape {covered.shape} does not match the normal map's {xyz.shape[:2]}")
+    if not covered.any():
+        return None
+    length = np.linalg.norm(xyz[covered], axis=-1)
+    error = float(np.median(np.abs(length - 1.0)))
+    if error <= tolerance:
+        return None
+    return (f"decoded as (n + 1) / 2 its vectors are not unit length: median | |n| - 1 | = {error:.3f} over "
+            f"{int(covered.sum())} covered pixels (tolerance {tolerance}; median length {float(np.median(length)):.3f})"
+            "; another encoding (e.g. saturated channels, negative components clipped) that eval cannot read")
+
+
 def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLike | None = None,
                    weights: ArrayLike | None = None) -> float:
     """Mean angular error in degrees between two normal maps, a weighted mean over the foreground.

@@ -68,6 +68,30 @@ def _check(o: EvalOptions) -> dict[str, Any]:
     return requested
 
 
+def _score_mesh(mesh_path: Path, gt, o: EvalOptions, radius: float,
+                to_world) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The scored mesh's Chamfer numbers and inner-shell share, and their protocol entries (``chamfer`` with a
+    ``warning`` when the distance says the reference is in another frame, ``inner_shells``)."""
+    from anisdf.eval.metrics import load_mesh
+    from anisdf.tasks.evaluate import protocol as record
+    from anisdf.tasks.evaluate import scoring
+    from anisdf.tasks.evaluate.shells import inner_shells, inner_shells_record
+
+    mesh = load_mesh(mesh_path)
+    metrics = scoring.chamfer_scores(mesh_path, gt, o.gt_mesh, o.chamfer_points, o.chamfer_seed, mesh=mesh)
+    chamfer = record.chamfer_record(o.chamfer_points, o.chamfer_seed, o.gt_mesh)
+    warning = scoring.chamfer_frame_warning(metrics["chamfer"], radius, to_world)
+    if warning is not None:
+        log.warning("eval: %s", warning)
+        chamfer["warning"] = warning
+    shells = inner_shells(mesh)
+    metrics["inner_shell_share"] = shells["share"]
+    (log.warning if shells["inner_components"] else log.info)(
+        "eval: inner shells: %.1f%% of the mesh's area in %d of %d components that no camera outside sees",
+        100.0 * shells["share"], shells["inner_components"], shells["components"])
+    return metrics, {"chamfer": chamfer, "inner_shells": inner_shells_record(shells)}
+
+
 def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> dict[str, Any]:
     """PSNR / SSIM (and normal MAE where the dataset has normal maps) on a split, Chamfer against ``gt_mesh``;
     writes RUN/eval.json (with a "protocol" object recording every choice), RUN/eval/ images and a report
@@ -81,6 +105,12 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     defaults"; given, they must match the existing mesh (else pass ``re_extract``).
     ``baked``: a folder ``anisdf export`` wrote from this run; its asset is rendered by the reference renderer (what
     the viewer page draws) from the same cameras and scored too (``baked_psnr``, ``baked_ssim``).
+
+    References are checked before they are scored: a normal map whose covered pixels do not decode to unit vectors
+    as ``(n + 1) / 2`` is skipped (protocol ``normal_maps_skipped``: file and reason); a Chamfer distance above a
+    tenth of the scene sphere's diameter is written with a warning (protocol ``chamfer.warning``) that the reference
+    mesh may be in another frame. ``inner_shell_share``: the scored mesh's area in closed components no camera
+    outside sees (:mod:`.shells`).
     """
     from tqdm import tqdm
 
@@ -121,12 +151,15 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     per_view: list[dict[str, Any]] = []
     images: list[Path] = []
     normal_names: set[str] = set()
+    skipped: list[dict[str, str]] = []
     for i in tqdm(range(n), desc=f"eval {o.split}", unit="view", disable=not o.progress):
-        row, res, normal_name = scoring.score_view(model, data, i, ids[i], scene, ck, cfg.renderer.eval_chunk_rays,
-                                                   o.normal_mask, asset)
+        row, res, normal_name, skip = scoring.score_view(model, data, i, ids[i], scene, ck,
+                                                         cfg.renderer.eval_chunk_rays, o.normal_mask, asset)
         per_view.append(row)
         if normal_name is not None:
             normal_names.add(normal_name)
+        if skip is not None:
+            skipped.append(skip)
         images.append(save_image(rd.eval_images / f"{i:03d}.png", panel(res)))
     metrics = scoring.mean_scores(per_view, o.split, baked=asset is not None)
     protocol = record.views_record(scene, cfg, o.split, n, held_out, o.eval_downscale, background)
@@ -136,12 +169,17 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     if n_maes:
         protocol["normal_mae"] = record.normal_mae_record(n_maes, normal_names, o.normal_mask,
                                                           record.alpha_source(scene))
+    if skipped:
+        log.warning("eval: %d reference normal map(s) not scored (%s: %s)%s", len(skipped), skipped[0]["file"],
+                    skipped[0]["reason"], f"; normal_mae_deg over the {n_maes} other view(s)" if n_maes else
+                    "; no normal_mae_deg")
+        protocol["normal_maps_skipped"] = skipped
     if o.gt_mesh is not None:
         mesh_info = scoring.mesh_to_score(run, mesh_info, requested, o.re_extract, str(dev), o.progress)
-        metrics.update(scoring.chamfer_scores(Path(mesh_info["path"]), gt, o.gt_mesh, o.chamfer_points,
-                                              o.chamfer_seed))
+        mesh_metrics, mesh_protocol = _score_mesh(Path(mesh_info["path"]), gt, o, cfg.renderer.radius, ck["to_world"])
+        metrics.update(mesh_metrics)
         protocol["mesh"] = record.mesh_record(mesh_info)
-        protocol["chamfer"] = record.chamfer_record(o.chamfer_points, o.chamfer_seed, o.gt_mesh)
+        protocol.update(mesh_protocol)
     metrics.update(steps=step, train_seconds=float(ck["state"]["train_seconds"]), preset=cfg.preset)
     rd.write_eval({**metrics, "protocol": protocol, "per_view": per_view})
     write_run_report(run, metrics, per_view, images, protocol=protocol, up=dataset_up(scene, ck))

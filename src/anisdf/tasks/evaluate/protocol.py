@@ -26,8 +26,8 @@ def alpha_source(scene) -> str:
 
 def views_record(scene, cfg, split: str, n_views: int, held_out: bool, eval_downscale: float,
                  background: str) -> dict[str, Any]:
-    """The protocol's views, images and colour metrics; ``normal_mae``, ``mesh``, ``chamfer`` and ``baked`` are
-    None until filled in."""
+    """The protocol's views, images and colour metrics; ``normal_mae``, ``mesh``, ``chamfer``, ``inner_shells`` and
+    ``baked`` are None until filled in."""
     return {
         "split": split, "views": n_views, "view_selection": view_selection(scene, split), "held_out": held_out,
         "eval_downscale": float(eval_downscale), "train_downscale": float(cfg.data.downscale),
@@ -37,7 +37,7 @@ def views_record(scene, cfg, split: str, n_views: int, held_out: bool, eval_down
         "psnr": "mean over views of -10 log10(MSE), float renders in [0, 1] against 8-bit ground truth",
         "ssim": "skimage structural_similarity: gaussian_weights, sigma 1.5, population covariance, data_range 1, "
                 "mean over channels; mean over views",
-        "normal_mae": None, "mesh": None, "chamfer": None, "baked": None,
+        "normal_mae": None, "mesh": None, "chamfer": None, "inner_shells": None, "baked": None,
     }
 
 

@@ -144,12 +144,16 @@ def _html_section(section: FigureSection, out_dir: Path) -> str:
 
 
 def flatten(d: dict[str, Any], prefix: str = "") -> list[dict[str, Any]]:
-    """``{"a": {"b": 1}, "c": [1, 2]}`` -> rows ``{"setting": "a.b", "value": 1}``, ``{"setting": "c", ...}``."""
+    """``{"a": {"b": 1}, "c": [1, 2]}`` -> rows ``{"setting": "a.b", "value": 1}``, ``{"setting": "c", ...}``; a list
+    of objects ``{"d": [{"e": 1}]}`` gives ``d.0.e``."""
     rows: list[dict[str, Any]] = []
     for k, v in d.items():
         key = f"{prefix}{k}"
         if isinstance(v, dict):
             rows.extend(flatten(v, key + "."))
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            for i, x in enumerate(v):
+                rows.extend(flatten(x, f"{key}.{i}."))
         else:
             rows.append({"setting": key, "value": ", ".join(map(str, v)) if isinstance(v, list | tuple) else v})
     return rows
@@ -284,8 +288,10 @@ def per_view_section(per_view: Sequence[dict[str, Any]], images: Sequence[Path])
     return FigureSection("PSNR per view", "per-view-psnr", per_view_psnr(per_view, worst), note, panels)
 
 
-def mesh_section(run: Path, mesh_path: Path | None, up: np.ndarray | None) -> FigureSection:
-    """A turntable of the mesh eval scored, else of the one in the run folder, else a line saying there is none."""
+def mesh_section(run: Path, mesh_path: Path | None, up: np.ndarray | None,
+                 inner_shell_share: float | None = None) -> FigureSection:
+    """A turntable of the mesh eval scored, else of the one in the run folder, else a line saying there is none;
+    the note gives the scored mesh's ``inner_shell_share`` when known."""
     from anisdf.eval.metrics import load_mesh
     from anisdf.tasks.evaluate.figures import TURNTABLE_VIEWS, turntable
 
@@ -301,6 +307,9 @@ def mesh_section(run: Path, mesh_path: Path | None, up: np.ndarray | None) -> Fi
     scored = "scored by eval" if mesh_path is not None else "in the run folder, not scored"
     note = (f"{path.name} ({scored}; {len(mesh.faces):,} faces), {TURNTABLE_VIEWS} views around the cameras' "
             "vertical axis, shaded by face normal.")
+    if inner_shell_share is not None:
+        note += (f" Inner shells (closed components no camera outside sees): {100.0 * inner_shell_share:.1f}% of its "
+                 "area.")
     return FigureSection(title, anchor, turntable(mesh, up), note)
 
 
@@ -313,6 +322,7 @@ def write_run_report(run: Path, metrics: dict[str, Any], per_view: list[dict[str
     run = Path(run)
     rd = RunDir(run)
     sections = [training_section(run), per_view_section(per_view, images),
-                mesh_section(run, Path(metrics["mesh"]) if metrics.get("mesh") else None, up)]
+                mesh_section(run, Path(metrics["mesh"]) if metrics.get("mesh") else None, up,
+                             metrics.get("inner_shell_share"))]
     return write_report(run, metrics, per_view, images, protocol=protocol,
                         figures=[s for s in sections if s is not None], paths=(rd.report_html, rd.report_md))

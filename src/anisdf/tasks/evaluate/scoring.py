@@ -28,21 +28,41 @@ def baked_for_eval(folder: Path, step: int):
     return asset
 
 
-def normal_weights(scene, index: int, reference: np.ndarray, opacity: np.ndarray, normal_mask: str) -> np.ndarray:
-    """Pixel weights of view ``index``'s normal MAE: the ground-truth alpha (``Scene.coverage()``, else the normal
-    map's own alpha), times the rendered opacity for ``refnerf`` (Ref-NeRF's eval.py)."""
+def ground_truth_alpha(scene, index: int, reference: np.ndarray) -> np.ndarray:
+    """[H, W] coverage of view ``index`` in [0, 1]: ``Scene.coverage()``, else the normal map's own alpha."""
     cover = scene.coverage()
-    gt_alpha = cover[index].float().numpy() / 255.0 if cover is not None else reference[..., 3]
+    return cover[index].float().numpy() / 255.0 if cover is not None else reference[..., 3]
+
+
+def normal_weights(scene, index: int, reference: np.ndarray, opacity: np.ndarray, normal_mask: str) -> np.ndarray:
+    """Pixel weights of view ``index``'s normal MAE: the ground-truth alpha (:func:`ground_truth_alpha`), times the
+    rendered opacity for ``refnerf`` (Ref-NeRF's eval.py)."""
+    gt_alpha = ground_truth_alpha(scene, index, reference)
     if normal_mask == "refnerf":
         return gt_alpha * np.clip(opacity[..., 0], 0.0, 1.0)
     return gt_alpha
 
 
+def normal_map_skip(path: Path | None, scene, index: int, reference: np.ndarray) -> dict[str, str] | None:
+    """``{"file", "reason"}`` when the normal map at ``path`` (view ``index``'s reference) does not hold unit normals
+    as ``(n + 1) / 2`` over the covered pixels (:func:`anisdf.eval.metrics.normal_map_problem`), else None."""
+    from anisdf.data.images import read_normal_raw
+    from anisdf.eval.metrics import normal_map_problem
+
+    if path is None:
+        return None
+    raw = read_normal_raw(path, (scene.width, scene.height))
+    problem = normal_map_problem(raw, ground_truth_alpha(scene, index, reference))
+    return None if problem is None else {"file": path.name, "reason": problem}
+
+
 def score_view(model, data, i: int, index: int, scene, ck: dict[str, Any], chunk_rays: int, normal_mask: str,
-               asset=None) -> tuple[dict[str, Any], dict[str, Any], str | None]:
+               asset=None) -> tuple[dict[str, Any], dict[str, Any], str | None, dict[str, str] | None]:
     """Render view ``i`` of ``data`` (``scene``'s image ``index``) and score it. Returns its row of eval.json's
     ``per_view``, the render (for :func:`anisdf.models.views.panel`; with ``baked`` / ``baked_psnr`` when ``asset``
-    is scored too) and the name pattern of its reference normal map (``<image>_normal.png``), None without one."""
+    is scored too), the name pattern of its reference normal map (``<image>_normal.png``; None without one or when
+    it is skipped) and, when that map is skipped rather than scored, ``{"file", "reason"}`` (:func:`normal_map_skip`).
+    """
     import torch
 
     from anisdf.data.dataparsers.blender import find_normal_map
@@ -63,16 +83,19 @@ def score_view(model, data, i: int, index: int, scene, ck: dict[str, Any], chunk
         row.update(baked_psnr=res["baked_psnr"], baked_ssim=ssim(img, res["gt"]), baked_vs_neural_psnr=psnr(img, pred))
     ref = scene.normals.get(index)
     if ref is None:
-        return row, res, None
+        return row, res, None, None
     ref_np = ref.cpu().numpy() if isinstance(ref, torch.Tensor) else np.asarray(ref)
+    found = find_normal_map(image)
+    skipped = normal_map_skip(found, scene, index, ref_np)
+    if skipped is not None:
+        return row, res, None, skipped
     weights = normal_weights(scene, index, ref_np, res["maps"]["opacity"], normal_mask)
     if float(weights.sum()) > 0:
         row["normal_mae_deg"] = normal_mae_deg(res["maps"]["normal"], ref_np[..., :3], weights=weights)
     else:  # Ref-NeRF's 0 / 0: nothing rendered where the object is
         log.warning("eval: view %d (%s) has no pixel with weight > 0 for the normal MAE (%s); left out", i,
                     image.name, normal_mask)
-    found = find_normal_map(image)
-    return row, res, None if found is None else "<image>" + found.name[len(image.stem):]
+    return row, res, None if found is None else "<image>" + found.name[len(image.stem):], None
 
 
 def mean_scores(per_view: list[dict[str, Any]], split: str, baked: bool) -> dict[str, Any]:
@@ -110,11 +133,28 @@ def mesh_to_score(run: Path, mesh_info: dict[str, Any] | None, requested: dict[s
     return mesh_info
 
 
-def chamfer_scores(mesh_path: Path, gt, gt_mesh: Path, points: int, seed: int) -> dict[str, Any]:
-    """eval.json's Chamfer numbers for the mesh at ``mesh_path`` against the reference ``gt`` (read from
-    ``gt_mesh``)."""
+def chamfer_scores(mesh_path: Path, gt, gt_mesh: Path, points: int, seed: int, mesh=None) -> dict[str, Any]:
+    """eval.json's Chamfer numbers for the mesh at ``mesh_path`` (``mesh`` when already read) against the reference
+    ``gt`` (read from ``gt_mesh``)."""
     from anisdf.eval.metrics import chamfer_distance, load_mesh
 
-    cd = chamfer_distance(load_mesh(mesh_path), gt, n_points=points, seed=seed)
+    cd = chamfer_distance(load_mesh(mesh_path) if mesh is None else mesh, gt, n_points=points, seed=seed)
     return {"chamfer": cd["chamfer"], "chamfer_accuracy": cd["accuracy"], "chamfer_completeness": cd["completeness"],
             "chamfer_points": points, "gt_mesh": str(gt_mesh), "mesh": str(mesh_path)}
+
+
+CHAMFER_FRAME_SHARE = 0.1
+"""A Chamfer distance above this share of the scene sphere's diameter says the reference is in another frame."""
+
+
+def chamfer_frame_warning(chamfer: float, radius: float, to_world: np.ndarray) -> str | None:
+    """A warning when ``chamfer`` (dataset units) exceeds :data:`CHAMFER_FRAME_SHARE` of the diameter of the run's
+    scene sphere (``radius`` in model units, mapped to the dataset frame by the similarity ``to_world``), else
+    None: a reference mesh in another frame or scale than the dataset's cameras gives such numbers."""
+    scale = float(abs(np.linalg.det(np.asarray(to_world, dtype=np.float64)[:3, :3])) ** (1.0 / 3.0))
+    diameter = 2.0 * float(radius) * scale
+    if not chamfer > CHAMFER_FRAME_SHARE * diameter:
+        return None
+    return (f"the Chamfer distance {chamfer:.4g} is {chamfer / diameter:.0%} of the scene sphere's diameter "
+            f"({diameter:.4g} dataset units): the reference mesh may be in another frame or scale than the dataset's "
+            "cameras")
