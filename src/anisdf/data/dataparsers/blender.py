@@ -4,8 +4,9 @@ Each file holds ``camera_angle_x`` (horizontal field of view, radians) and ``fra
 (with or without extension, relative to the dataset folder) and ``transform_matrix`` (camera-to-world in
 the OpenGL/Blender camera convention, converted here to OpenCV). Reference normal maps beside test (and val)
 images are picked up under the names the public datasets use (:data:`NORMAL_SUFFIXES`): Shiny Blender's
-``r_i_normal.png`` and the original NeRF-synthetic test split's ``r_i_normal_0001.png``. Both hold Blender world-space
-normals as ``(n + 1) / 2`` in RGB (sources and caveats: docs/evaluation.md, "Normals").
+``r_i_normal.png`` and the original NeRF-synthetic test split's ``r_i_normal_0001.png``. Both are meant to hold
+Blender world-space normals as ``(n + 1) / 2`` in RGB; the released ``_0001`` maps are saturated instead, so eval
+checks every map before scoring it (docs/evaluation.md, "Normals").
 """
 
 from __future__ import annotations
