@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import MISSING, dataclass
 from pathlib import Path
 
+from anisdf.eval.dtu import DENSITY_MM, MAX_DIST_MM
 from anisdf.utils.options import float_at_least, int_at_least, option, positional
 
 NAME = "dtu-chamfer"
@@ -19,8 +20,9 @@ class Options:
     scale_mat: Path | None = option(None, "cameras_sphere.npz whose scale_mat_0 maps the mesh to mm")
     mask_cull: Path | None = option(None, "NeuS dataset folder (cameras npz, mask/): cull the mesh with the dilated "
                                     "masks first", metavar="DATASET_DIR")
-    density: float = option(0.2, "sampling and thinning distance in mm", float_at_least(0.0, strict=True))
-    max_dist: float = option(20.0, "distances of this many mm or more are outliers", float_at_least(0.0, strict=True))
+    density: float = option(DENSITY_MM, "sampling and thinning distance in mm", float_at_least(0.0, strict=True))
+    max_dist: float = option(MAX_DIST_MM, "distances of this many mm or more are outliers",
+                             float_at_least(0.0, strict=True))
     seed: int = option(0, "order of the point thinning", int_at_least(0))
     no_stl_thinning: bool = option(False, "score against every STL point (DTUeval-python) instead of thinning them "
                                    "(MATLAB original)")

@@ -241,9 +241,15 @@ def cull_by_masks(vertices: np.ndarray, faces: np.ndarray, cameras_npz: str | Pa
     return vertices[keep], remap[faces[face_keep]], info
 
 
+DENSITY_MM = 0.2
+"""Sampling and thinning distance of the official evaluation, in mm."""
+MAX_DIST_MM = 20.0
+"""Distances of this many mm or more are outliers in the official evaluation."""
+
+
 def dtu_chamfer(mesh_path: str | Path, dtu_root: str | Path, scan: int, scale_mat: str | Path | None = None,
-                mask_cull: tuple[str | Path, str | Path] | None = None, density: float = 0.2,
-                max_dist: float = 20.0, seed: int = 0, thin_stl: bool = True) -> dict[str, Any]:
+                mask_cull: tuple[str | Path, str | Path] | None = None, density: float = DENSITY_MM,
+                max_dist: float = MAX_DIST_MM, seed: int = 0, thin_stl: bool = True) -> dict[str, Any]:
     """Official DTU accuracy, completeness and Chamfer distance (mm) of a mesh for DTU scan ``scan``.
 
     ``scale_mat``: a NeuS ``cameras_sphere.npz`` whose ``scale_mat_0`` maps the mesh to DTU world (mm);

@@ -24,6 +24,10 @@ from anisdf.utils.images import composite
 ArrayLike = np.ndarray | torch.Tensor
 
 
+CHAMFER_POINTS = 1_000_000
+"""Points sampled on each surface for the Chamfer distance unless told otherwise (eval, chamfer, reproduce)."""
+
+
 def _as_float_tensor(x: ArrayLike) -> torch.Tensor:
     """Convert an image (array or tensor) to a float64 tensor; integer images are scaled to [0, 1]."""
     if isinstance(x, torch.Tensor):
@@ -120,7 +124,7 @@ def sample_surface(mesh: trimesh.Trimesh, n: int, seed: int) -> np.ndarray:
 
 
 def chamfer_distance(
-    mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh, n_points: int = 1_000_000, seed: int = 0
+    mesh_a: trimesh.Trimesh, mesh_b: trimesh.Trimesh, n_points: int = CHAMFER_POINTS, seed: int = 0
 ) -> dict[str, float]:
     """Symmetric Chamfer distance between two surfaces, in the meshes' units.
 
@@ -250,7 +254,7 @@ def normal_mae_deg(pred_normals: ArrayLike, gt_normals: ArrayLike, mask: ArrayLi
     return float(torch.rad2deg((angle * wm).sum() / wm.sum()))
 
 
-def chamfer_main(a: str, b: str, n_points: int = 1_000_000, seed: int = 0) -> float:
+def chamfer_main(a: str, b: str, n_points: int = CHAMFER_POINTS, seed: int = 0) -> float:
     """Chamfer distance between the meshes in files ``a`` (prediction) and ``b`` (reference).
 
     Prints the details (point count, seeds, accuracy, completeness) and returns the Chamfer distance;

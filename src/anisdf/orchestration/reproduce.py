@@ -25,6 +25,7 @@ from typing import Any
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.eval.paper_tables import METRICS, PaperTable, find_scenes, get_table
 from anisdf.orchestration.cluster import machine_info, ray_option
+from anisdf.run_dir import RunDir
 from anisdf.tasks.evaluate import EvalOptions
 from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.atomic import write_text_atomic
@@ -128,7 +129,7 @@ def _dtu_chamfer(run: Path, scene_dir: Path, scene: str, dtu_eval: Path | None,
         return None, f"DTU Chamfer not measured: official evaluation files missing ({', '.join(missing)}; --dtu-eval)"
     from anisdf.tasks.mesh import extract_mesh
 
-    mesh = run / "mesh.ply"
+    mesh = RunDir(run).mesh("ply")
     if not mesh.is_file():
         mesh = extract_mesh(run, resolution=mesh_resolution, progress=False)
     # the mesh is already in DTU's world frame (mm): extract_mesh undoes the scene's scale_mat, so none is passed

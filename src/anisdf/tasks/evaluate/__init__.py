@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from anisdf.errors import AnisdfError
+from anisdf.eval.metrics import CHAMFER_POINTS
 from anisdf.run_dir import RunDir
 from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.options import float_at_least, int_at_least, option
@@ -37,7 +38,8 @@ class EvalOptions:
     normal_mask: str = option("refnerf", "normal MAE weights: rendered opacity x ground-truth alpha (Ref-NeRF), or "
                               "the alpha alone", choices=NORMAL_MASKS)
     gt_mesh: Path | None = option(None, "reference mesh for the Chamfer distance", Path)
-    chamfer_points: int = option(1_000_000, "points sampled on each mesh for the Chamfer distance", int_at_least(1))
+    chamfer_points: int = option(CHAMFER_POINTS, "points sampled on each mesh for the Chamfer distance",
+                                 int_at_least(1))
     chamfer_seed: int = option(0, "seed of the prediction's points (reference: +1)", int_at_least(0))
     mesh_resolution: int | None = option(None, "marching cubes resolution when eval extracts the mesh (default "
                                          f"{MeshOptions().resolution})" + _MESH_NOTE, int_at_least(2))
