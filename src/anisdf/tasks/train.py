@@ -44,6 +44,7 @@ class TrainOptions:
     resume: bool = option(False, "continue from RUN/checkpoints/last.pt")
     progress: bool = option(True, "show a progress bar", cli=False)
 
+
 def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for k, v in d.items():
@@ -73,7 +74,7 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
     have, want = _flat(saved.to_dict()), _flat(wanted.to_dict())
     for key, value in want.items():
         if not key.startswith("train.") and have.get(key) != value:
-            raise AnisdfError(f"--resume: {key} is {have.get(key)!r} in {out / 'config.yaml'}, the given preset and "
+            raise AnisdfError(f"--resume: {key} is {have.get(key)!r} in {RunDir(out).config}, the given preset and "
                               f"overrides make it {value!r}; only train.* settings may change on --resume")
     cfg = config_from_dict(saved.to_dict())
     for item in train_items:
