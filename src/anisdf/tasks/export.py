@@ -21,13 +21,17 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("anisdf")
 
+_FACES, _TEXTURE = 200_000, 1024
+"""Defaults of ``--faces`` and ``--texture`` (named here so that their help text reads them)."""
+
 
 @dataclasses.dataclass(kw_only=True)
 class ExportOptions:
     """``anisdf export``'s options (:func:`export`)."""
 
-    faces: int = option(200_000, "triangle budget of the decimated mesh, e.g. 300k (default 200k)", count_at_least(4))
-    texture: int = option(1024, "diffuse texture size in texels (1024)", int_at_least(16))
+    faces: int = option(_FACES, f"triangle budget of the decimated mesh, e.g. 300k (default {_FACES // 1000}k)",
+                        count_at_least(4))
+    texture: int = option(_TEXTURE, f"diffuse texture size in texels ({_TEXTURE})", int_at_least(16))
     specular_texture: int = option(0, "lobe texture size in texels; 0: half of --texture", int_at_least(0))
     lobes: int = option(3, f"spherical Gaussian lobes per texel (0: diffuse only; at most {MAX_LOBES})",
                         int_at_least(0))

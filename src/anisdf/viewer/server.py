@@ -33,11 +33,15 @@ from anisdf.viewer.frames import Frame, ViewCamera, render_frame
 log = logging.getLogger("anisdf")
 
 
+_PORT = 7007
+
+
 @dataclass(kw_only=True)
 class ViewOptions:
     """How ``anisdf view`` (and ``train --viewer``) serve a run."""
 
-    port: int = option(7007, "viewer port (default 7007; when taken, the next free one, said at start)", port_number)
+    port: int = option(_PORT, f"viewer port (default {_PORT}; when taken, the next free one, said at start)",
+                       port_number)
     host: str = option("127.0.0.1", "viewer address to listen on (0.0.0.0: every interface)")
     max_resolution: int = option(512, "long side in pixels of a resting view (a slider in the page changes it)",
                                  int_at_least(64))
