@@ -1,8 +1,8 @@
 """Command line: ``anisdf <command> ...``, one module per command (:data:`COMMANDS`).
 
-A command's module ``anisdf.cli.<name>`` holds its name (``NAME``), one line of help (``HELP``), its options
-(``Options``: the task's options dataclass, extended by what only the command line has; the parser is built from
-its fields by :mod:`anisdf.cli.options`) and ``run(opts) -> int``, which makes one library call and prints its result.
+A command's module ``anisdf.cli.<name>`` holds its name (``NAME``), its options (``Options``: the task's options
+dataclass, extended by what only the command line has; the parser is built from its fields by
+:mod:`anisdf.cli.options`) and ``run(opts) -> int``, which makes one library call and prints its result.
 Only the module of the command given is imported. User errors end with exit code 2 and one line (``--debug`` shows
 the traceback).
 """
@@ -20,9 +20,24 @@ from anisdf import __version__
 from anisdf.cli.options import _Parser, add_options, cli_fields, read_options
 from anisdf.errors import AnisdfError
 
-COMMANDS = ("inspect", "train", "view", "extract-mesh", "render", "eval", "export", "chamfer", "dtu-chamfer",
-            "process-data", "demo", "bench", "reproduce", "batch")
-"""The commands in the order ``anisdf --help`` lists them; command ``x-y`` is the module ``anisdf.cli.x_y``."""
+COMMANDS = {
+    "inspect": "validate a dataset and print a JSON summary",
+    "train": "reconstruct a scene",
+    "view": "interactive web viewer of a run (finished or training): maps, cameras, mesh",
+    "extract-mesh": "marching cubes on the SDF -> RUN/mesh.<ext>",
+    "render": "render views and maps (normal, depth, c_view, c_ref, w, opacity)",
+    "eval": "PSNR, SSIM, normal MAE and Chamfer -> RUN/eval.json + report",
+    "export": "bake a run into a real-time asset: model.glb, specular_*.png, index.html",
+    "chamfer": "Chamfer distance between two meshes (last line)",
+    "dtu-chamfer": "official DTU accuracy / completeness / Chamfer in mm (last line)",
+    "process-data": "camera poses for your own photos or video (pycolmap) -> SCENE",
+    "demo": "reconstruct the bundled scene on the CPU in a few minutes",
+    "bench": "speed benchmark (encoding, training step, time to quality)",
+    "reproduce": "train and evaluate a table of the paper -> OUT/reproduce.json, .md",
+    "batch": "train, mesh and evaluate a list of jobs (JOBS.yaml) -> OUT/NAME, OUT/batch.json",
+}
+"""Each command and its line of help, in the order ``anisdf --help`` lists them; command ``x-y`` is the module
+``anisdf.cli.x_y`` (imported only when it is the command given, so that ``anisdf --help`` starts no torch)."""
 
 _GLOBAL_HELP = ("-h", "--help")
 
@@ -44,18 +59,16 @@ def _command_in(argv: list[str]) -> str | None:
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The parser of ``anisdf``: every command with its help line, and the arguments of ``command`` (None: of every
-    command)."""
+    """The parser of ``anisdf``: every command with its help line, and the arguments of ``command`` (None: of
+    none)."""
     p = _Parser(prog="anisdf", description="AniSDF: neural surfaces from posed photos.")
     p.add_argument("--version", action="version", version=f"anisdf {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
-        if command is not None and name != command:
-            sub.add_parser(name)  # its name is a choice; its arguments are read only when it is the one given
-            continue
-        mod = command_module(name)
-        add_options(sub.add_parser(name, help=mod.HELP), mod.Options)
+    for name, help_line in COMMANDS.items():
+        parser = sub.add_parser(name, help=help_line)
+        if name == command:  # the other commands' arguments are read only when one of them is given
+            add_options(parser, command_module(name).Options)
     return p
 
 

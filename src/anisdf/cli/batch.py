@@ -12,7 +12,6 @@ from anisdf.orchestration.batch import BatchOptions
 from anisdf.utils.options import option, out_folder, positional
 
 NAME = "batch"
-HELP = "train, mesh and evaluate a list of jobs (JOBS.yaml) -> OUT/NAME, OUT/batch.json"
 
 
 @dataclass(kw_only=True)

@@ -5,7 +5,6 @@ from __future__ import annotations
 from anisdf.benchmarks.speed import BenchOptions
 
 NAME = "bench"
-HELP = "speed benchmark (encoding, training step, time to quality)"
 
 Options = BenchOptions
 

@@ -10,7 +10,6 @@ from anisdf.tasks.evaluate import EvalOptions
 from anisdf.utils.options import int_at_least, option, positional
 
 NAME = "chamfer"
-HELP = "Chamfer distance between two meshes (last line)"
 
 
 @dataclass(kw_only=True)

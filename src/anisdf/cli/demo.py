@@ -10,7 +10,6 @@ from anisdf.tasks.demo import DemoOptions
 from anisdf.utils.options import option, out_folder
 
 NAME = "demo"
-HELP = "reconstruct the bundled scene on the CPU in a few minutes"
 
 
 @dataclass(kw_only=True)

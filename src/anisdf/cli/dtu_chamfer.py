@@ -9,7 +9,6 @@ from anisdf.eval.dtu import DENSITY_MM, MAX_DIST_MM
 from anisdf.utils.options import float_at_least, int_at_least, option, positional
 
 NAME = "dtu-chamfer"
-HELP = "official DTU accuracy / completeness / Chamfer in mm (last line)"
 
 
 @dataclass(kw_only=True)

@@ -11,7 +11,6 @@ from anisdf.tasks.evaluate import EvalOptions
 from anisdf.utils.options import positional
 
 NAME = "eval"
-HELP = "PSNR, SSIM, normal MAE and Chamfer -> RUN/eval.json + report"
 
 
 @dataclass(kw_only=True)

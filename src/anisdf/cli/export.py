@@ -12,7 +12,6 @@ from anisdf.tasks.export import ExportOptions
 from anisdf.utils.options import option, out_folder, positional
 
 NAME = "export"
-HELP = "bake a run into a real-time asset: model.glb, specular_*.png, index.html"
 
 SUMMARY_KEYS = ("faces", "vertices", "texture", "specular_texture", "lobes", "files", "total_bytes", "seconds")
 """What of export.json is printed."""

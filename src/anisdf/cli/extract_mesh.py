@@ -10,7 +10,6 @@ from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.options import positional
 
 NAME = "extract-mesh"
-HELP = "marching cubes on the SDF -> RUN/mesh.<ext>"
 
 
 @dataclass(kw_only=True)

@@ -9,7 +9,6 @@ from pathlib import Path
 from anisdf.utils.options import positional
 
 NAME = "inspect"
-HELP = "validate a dataset and print a JSON summary"
 
 
 @dataclass(kw_only=True)

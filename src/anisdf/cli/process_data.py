@@ -12,7 +12,6 @@ from anisdf.data.process import ProcessDataOptions
 from anisdf.utils.options import option, positional
 
 NAME = "process-data"
-HELP = "camera poses for your own photos or video (pycolmap) -> SCENE"
 
 
 @dataclass(kw_only=True)

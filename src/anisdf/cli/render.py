@@ -14,7 +14,6 @@ from anisdf.utils.options import positional
 log = logging.getLogger("anisdf")
 
 NAME = "render"
-HELP = "render views and maps (normal, depth, c_view, c_ref, w, opacity)"
 
 
 @dataclass(kw_only=True)

@@ -14,7 +14,6 @@ from anisdf.orchestration.reproduce import ReproduceOptions
 from anisdf.utils.options import option, out_folder, positional
 
 NAME = "reproduce"
-HELP = "train and evaluate a table of the paper -> OUT/reproduce.json, .md"
 
 
 @dataclass(kw_only=True)

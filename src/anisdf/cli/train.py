@@ -27,7 +27,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("anisdf")
 
 NAME = "train"
-HELP = "reconstruct a scene"
 
 
 @dataclass(kw_only=True)

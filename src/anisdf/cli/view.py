@@ -10,7 +10,6 @@ from anisdf.utils.options import positional
 from anisdf.viewer.server import ViewOptions
 
 NAME = "view"
-HELP = "interactive web viewer of a run (finished or training): maps, cameras, mesh"
 
 @dataclass(kw_only=True)
 class Options(ViewOptions):
