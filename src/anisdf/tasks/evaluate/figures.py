@@ -116,14 +116,17 @@ def cluster_vertices(vertices: np.ndarray, faces: np.ndarray, max_faces: int) ->
 
 
 def decimate(mesh, max_faces: int = TURNTABLE_FACES):
-    """``mesh`` (trimesh) with at most about ``max_faces`` faces: quadric decimation when fast-simplification is
-    installed (anisdf[export]), else vertex clustering."""
+    """``mesh`` (trimesh) with at most about ``max_faces`` faces: the export's quadric decimation
+    (:func:`anisdf.export.mesh.decimate`) when fast-simplification is installed (anisdf[export]), else vertex
+    clustering."""
     import trimesh
+
+    from anisdf.export.mesh import decimate as quadric_decimate
 
     if len(mesh.faces) <= max_faces:
         return mesh
     try:
-        return mesh.simplify_quadric_decimation(face_count=max_faces)
+        return quadric_decimate(mesh, max_faces)
     except ImportError:
         v, f = cluster_vertices(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces), max_faces)
         return trimesh.Trimesh(v, f, process=False)
