@@ -182,6 +182,7 @@ def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: 
     ctx = distributed.init_from_env(o.device or cfg.train.device)
     dev = ctx.device if ctx is not None else pick_device(o.device or cfg.train.device)
     close: Callable[[], None] | None = None
+    finished = False
     try:
         scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
                            images_dir=cfg.data.images_dir)
@@ -196,8 +197,10 @@ def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: 
                 log.info("resuming %s at step %d", out, trainer.state.step)
         if setup is not None and trainer.is_main:
             close = setup(trainer)
-        return trainer.fit()
+        summary = trainer.fit()
+        finished = True
+        return summary
     finally:
         if close is not None:
             close()
-        distributed.shutdown(ctx)
+        distributed.shutdown(ctx, finished=finished)

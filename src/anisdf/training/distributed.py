@@ -140,7 +140,12 @@ def init_from_env(device_name: str) -> Dist | None:
     return Dist(rank=rank, world_size=world, local_rank=local, device=device)
 
 
-def shutdown(ctx: Dist | None) -> None:
-    """Leave the process group (after training, on every rank)."""
-    if ctx is not None and td.is_initialized():
-        td.destroy_process_group()
+def shutdown(ctx: Dist | None, *, finished: bool) -> None:
+    """Leave the process group (on every rank). After a run that ``finished``, the ranks first wait for each other:
+    a rank that tore down its gloo connections while another still wrote its last files could abort the other
+    ("terminate called without an active exception"). After an error no rank waits (the others may never come)."""
+    if ctx is None or not td.is_initialized():
+        return
+    if finished:
+        td.barrier()
+    td.destroy_process_group()
