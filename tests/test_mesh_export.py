@@ -149,7 +149,7 @@ def test_nonfinite_sdf_raises() -> None:
 
 
 def test_remove_floaters_keeps_main_component() -> None:
-    big, tiny = sphere_sdf(r=0.5), sphere_sdf(center=(0.85, 0.85, 0.85), r=0.06)
+    big, tiny = sphere_sdf(r=0.5), sphere_sdf(center=(0.55, 0.55, 0.3), r=0.06)
     m = extract_mesh(lambda p: torch.minimum(big(p), tiny(p)), resolution=96, two_pass=False, progress=False)
     assert m.body_count == 2
     cleaned = remove_floaters(m, min_fraction=0.05)
@@ -157,6 +157,21 @@ def test_remove_floaters_keeps_main_component() -> None:
     assert np.linalg.norm(cleaned.vertices, axis=1).max() < 0.52  # the far sphere is gone
     assert cleaned.is_watertight
     assert remove_floaters(m, min_fraction=0.0).body_count == 2  # threshold respected
+
+
+def test_only_the_marched_sphere_is_meshed_unless_the_box_is_asked_for() -> None:
+    # a blob in a corner of the box, outside the unit sphere that training marches rays through
+    big, corner = sphere_sdf(r=0.5), sphere_sdf(center=(0.85, 0.85, 0.85), r=0.1)
+    both = lambda p: torch.minimum(big(p), corner(p))  # noqa: E731
+    m = extract_mesh(both, resolution=64, progress=False)
+    assert m.body_count == 1 and np.linalg.norm(m.vertices, axis=1).max() < 0.52
+    assert extract_mesh(both, resolution=64, progress=False, region="box").body_count == 2
+    # a surface cut by the sphere is closed by a cap on it: a half space gives a watertight half ball
+    half = extract_mesh(lambda p: p[:, 2], resolution=64, two_pass=False, progress=False)
+    assert half.is_watertight
+    assert half.volume == pytest.approx(2 / 3 * math.pi, rel=0.03)
+    with pytest.raises(AnisdfError, match="no surface found in the sphere"):  # negative inside, positive corners
+        extract_mesh(lambda p: p.norm(dim=-1) - 1.2, resolution=32, progress=False)
 
 
 # ---------------------------------------------------------------- colours, transform, saving

@@ -200,6 +200,15 @@ def fill_cavities(vol: np.ndarray) -> np.ndarray:
     return out
 
 
+def _clip_to_sphere(vol: np.ndarray, lo: np.ndarray, step: np.ndarray, radius: float) -> np.ndarray:
+    """The sampled SDF intersected with the ball of ``radius``: ``max(sdf, |x| - radius)`` (in place, by slabs)."""
+    axes = [(lo[k] + np.arange(vol.shape[k]) * step[k]).astype(np.float32) for k in range(3)]
+    yz2 = axes[1][:, None] ** 2 + axes[2][None, :] ** 2
+    for i, x in enumerate(axes[0]):
+        np.maximum(vol[i], np.sqrt(yz2 + x * x) - radius, out=vol[i])
+    return vol
+
+
 def extract_mesh(
     sdf_fn: Callable[[torch.Tensor], torch.Tensor],
     radius: float = 1.0,
@@ -211,8 +220,14 @@ def extract_mesh(
     progress: bool = True,
     sparse: bool = True,
     keep_inner: bool = False,
+    region: Literal["sphere", "box"] = "sphere",
 ) -> trimesh.Trimesh:
     """Marching-cubes mesh of the zero level set of ``sdf_fn`` inside the box [-radius, radius]^3.
+
+    ``region="sphere"`` (default) keeps only the part inside the sphere of ``radius``, the region training marches
+    rays through (ray_marching.py): the SDF is read as ``max(sdf, |x| - radius)``, so the box's corners, which no
+    ray ever supervised, cannot carry floaters, and a surface cut by the sphere is closed by a cap on it.
+    ``region="box"`` meshes the whole box as it is.
 
     ``sdf_fn`` maps [M, 3] points to [M] (or [M, 1]) signed distances, negative inside; it is called
     under ``torch.no_grad`` on chunks of ``chunk`` points on ``device``.
@@ -231,16 +246,26 @@ def extract_mesh(
     """
     if resolution < 2:
         raise ValueError(f"resolution must be at least 2, got {resolution}")
+    if region not in ("sphere", "box"):
+        raise ValueError(f"region must be 'sphere' or 'box', got {region!r}")
+    sphere = region == "sphere"
     box_lo = np.full(3, -float(radius))
     box_hi = np.full(3, float(radius))
     res1 = min(resolution, max(64, resolution // 4)) if two_pass else resolution
     step, counts = _grid_axes(box_lo, box_hi, res1)
     vol = _eval_grid(sdf_fn, box_lo, step, counts, device, chunk, progress, f"mesh pass 1 ({res1}^3)")
+    if sphere:
+        inside = _clip_to_sphere(np.zeros_like(vol), box_lo, step, radius) <= 0
+        seen = vol[inside] if inside.any() else vol
+        vol = _clip_to_sphere(vol, box_lo, step, radius)
+    else:
+        seen = vol
     bounds = _crossing_bounds(vol)
-    if bounds is None:
-        lo_v, hi_v = float(vol.min()), float(vol.max())
+    if bounds is None or not float(seen.min()) < 0.0 < float(seen.max()):
+        lo_v, hi_v = float(seen.min()), float(seen.max())
+        where = f"the sphere of radius {radius}" if sphere else f"the box [-{radius}, {radius}]^3"
         raise AnisdfError(
-            f"mesh extraction: no surface found in the box [-{radius}, {radius}]^3 "
+            f"mesh extraction: no surface found in {where} "
             f"(the SDF does not change sign; its values range from {lo_v:.4g} to {hi_v:.4g})"
         )
     lo = box_lo
@@ -255,6 +280,8 @@ def extract_mesh(
         desc = f"mesh pass 2 ({resolution})"
         vol = (_eval_grid_near(sdf_fn, lo, step, counts, coarse, device, chunk, progress, desc) if sparse
                else _eval_grid(sdf_fn, lo, step, counts, device, chunk, progress, desc))
+        if sphere:
+            vol = _clip_to_sphere(vol, lo, step, radius)
         if _crossing_bounds(vol) is None:  # cannot happen for a deterministic SDF; keep the message clear
             raise AnisdfError("mesh extraction: the surface found in pass 1 vanished in pass 2")
     if not keep_inner:
