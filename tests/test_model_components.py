@@ -126,6 +126,23 @@ def test_fused_sdf_is_the_sum_of_branches():
 
 
 @pytest.mark.parametrize(("kind", "fusion"), [("fused", "sum"), ("fused", "mean"), ("single", "sum")])
+def test_distance_is_the_sdf_without_the_feature(kind, fusion):
+    """SDFField.distance (the SDF row of each last layer only) is sdf() up to float rounding, after training has
+    moved the weights away from the sphere."""
+    cfg = load_config("default", [f"geometry.kind={kind}", f"geometry.fusion={fusion}", "geometry.n_levels=4",
+                                  "geometry.coarse_levels=2", "geometry.log2_hashmap_size=10",
+                                  "geometry.encoding_backend=torch"]).geometry
+    torch.manual_seed(0)
+    field = SDFField(cfg)
+    field.set_step(10**6)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+        x = torch.rand(500, 3) * 2 - 1
+        torch.testing.assert_close(field.distance(x), field.sdf(x), atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize(("kind", "fusion"), [("fused", "sum"), ("fused", "mean"), ("single", "sum")])
 def test_closed_form_normals_and_their_training_gradients_match_autograd(kind, fusion):
     """with_gradient's closed-form MLP gradient equals autograd's d sdf / d x, and a loss on it (eikonal, as in
     training) gives every parameter the gradient that the double backward through forward() gives."""
@@ -288,6 +305,35 @@ def test_occupancy_grid_keeps_the_shell_of_a_sphere():
     on = F.normalize(torch.randn(1000, 3), dim=-1) * 0.5
     assert grid.query(on).all()
     assert not grid.query(torch.zeros(1, 3)).any() and not grid.query(torch.full((1, 3), 0.9)).any()
+
+
+def test_images_on_the_refined_grid_match_the_training_grid_with_fewer_samples(monkeypatch):
+    """renderer.image_grid_resolution: a fixed model's images march a finer grid (occupied cells split, the
+    object's inside kept): the same picture within 8-bit rounding, from fewer SDF queries."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12",
+                                    "renderer.grid_resolution=32", "renderer.image_grid_resolution=128"])
+    model = AniSDFModel(cfg).eval()
+    with torch.no_grad():
+        model.variance.variance.fill_(math.log(300.0) / cfg.renderer.variance_scale)  # inv_s = 300
+    model.update_grid(torch.Generator().manual_seed(0), full=True)
+    gen = torch.Generator().manual_seed(1)
+    o = F.normalize(torch.randn(1, 3, generator=gen), dim=-1).expand(4096, 3) * 3.0
+    d = F.normalize(-o + 0.35 * torch.randn(4096, 3, generator=gen), dim=-1)
+    queries = []
+    sdf = model.geometry.distance
+    monkeypatch.setattr(model.geometry, "distance", lambda x: (queries.append(x.shape[0]), sdf(x))[1])
+    coarse = model.render_image(o, d, torch.ones_like(d), 1024)
+    n_coarse, _ = sum(queries), queries.clear()
+    fine_grid = model.image_grid()
+    assert fine_grid.resolution == 128 and model.image_grid() is fine_grid  # built once per model state
+    queries.clear()
+    fine = model.render_image(o, d, torch.ones_like(d), 1024, fine_grid=True)
+    assert (coarse["opacity"] > 0.5).sum() > 500
+    assert sum(queries) < 0.8 * n_coarse
+    assert (fine["rgb"] - coarse["rgb"]).abs().max() < 2e-3
+    assert (fine["opacity"] - coarse["opacity"]).abs().max() < 2e-3
 
 
 def test_ray_occupancy_query_finds_the_cells_of_the_point_query():

@@ -137,6 +137,9 @@ class RendererConfig:
     color_weight_eps: float = 1e-4
     """The radiance heads run only on samples whose rendering weight exceeds this."""
     eval_chunk_rays: int = 4096
+    image_grid_resolution: int = 256
+    """Images of a fixed model (eval, render, export) march the occupancy grid refined to at least this many cells a
+    side (its occupied cells split, occupancy_grid.refined): fewer samples a ray. 0: the training grid."""
 
 
 @dataclass

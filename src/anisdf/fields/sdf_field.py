@@ -197,6 +197,21 @@ class SDFField(nn.Module):
     def sdf(self, x: Tensor) -> Tensor:
         return self.forward(x)[0]
 
+    def distance(self, x: Tensor) -> Tensor:
+        """The SDF alone [N], for queries that need no feature (pruning, grids, meshes of a fixed model): each
+        branch's last layer computes only its SDF row. Equal to :meth:`sdf` up to float rounding (another matrix
+        product); training keeps :meth:`sdf`, so its numerics do not move."""
+        with torch.autocast(x.device.type, enabled=False):
+            xn = self._normalised(x)
+            parts = []
+            for b in self.branches:
+                h = torch.cat([xn, b.encode(xn)], dim=-1)
+                for layer in b.layers[:-1]:
+                    h = F.softplus(layer(h), beta=BETA)
+                last = b.layers[-1]
+                parts.append(torch.addmv(last.bias[0], h, last.weight[0]))
+            return self._fuse(parts) * self.radius
+
     def with_gradient(self, x: Tensor, create_graph: bool, fd_eps: float | None = None
                       ) -> tuple[Tensor, Tensor, Tensor]:
         """SDF, feature and the SDF gradient (unnormalised normal) at ``x``.

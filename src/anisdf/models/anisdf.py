@@ -157,17 +157,19 @@ class AniSDFModel(nn.Module):
 
     # ----------------------------------------------------------------------------------------- render
     def render_rays(self, origins: Tensor, dirs: Tensor, background: Tensor, train: bool = False,
-                    generator: torch.Generator | None = None) -> RenderOutput:
-        """Render rays (NeuS, Eq. 1): per-ray maps, and in training the per-sample tensors the losses read."""
+                    generator: torch.Generator | None = None, grid: OccupancyGrid | None = None) -> RenderOutput:
+        """Render rays (NeuS, Eq. 1): per-ray maps, and in training the per-sample tensors the losses read.
+        ``grid``: the occupancy grid to march (default: the training grid)."""
         n_rays = origins.shape[0]
         rc = self.cfg.renderer
-        s = march(origins, dirs, self.grid, self.radius, self.step_size, rc.max_samples_per_ray,
-                  generator if train else None)
+        s = march(origins, dirs, self.grid if grid is None else grid, self.radius, self.step_size,
+                  rc.max_samples_per_ray, generator if train else None)
         inv_s = self.variance()
         n_marched = s.n
         if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
             with torch.no_grad():
-                sdf0 = self.geometry.sdf(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
+                query = self.geometry.sdf if train else self.geometry.distance  # training keeps its numerics
+                sdf0 = query(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
             keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(), rc.early_stop_eps)
             s = s.select(keep)
         d = dirs[s.ray_idx]
@@ -200,13 +202,32 @@ class AniSDFModel(nn.Module):
         return RenderOutput(out, inv_s.detach(), s.n, n_marched, samples)
 
     @torch.no_grad()
-    def render_image(self, origins: Tensor, dirs: Tensor, background: Tensor, chunk: int) -> dict[str, Tensor]:
-        """Chunked rendering of many rays (an image) within a memory budget; outputs on the rays' device."""
+    def image_grid(self) -> OccupancyGrid:
+        """The occupancy grid refined for images (``renderer.image_grid_resolution``), built once per model state
+        (step and grid update) and kept until either changes; the training grid when refinement is off."""
+        target = self.cfg.renderer.image_grid_resolution
+        factor = -(-target // self.grid.resolution) if target > 0 else 1
+        if factor <= 1:
+            return self.grid
+        key = (self.step_int, int(self.grid.n_updates), factor, float(self.variance()))
+        if getattr(self, "_image_grid", (None, None))[0] != key:
+            fine = self.grid.refined(self.geometry.distance, key[3], factor)
+            self._image_grid = (key, fine)
+        return self._image_grid[1]
+
+    @torch.no_grad()
+    def render_image(self, origins: Tensor, dirs: Tensor, background: Tensor, chunk: int,
+                     fine_grid: bool = False) -> dict[str, Tensor]:
+        """Chunked rendering of many rays (an image) within a memory budget; outputs on the rays' device.
+        ``fine_grid``: march :meth:`image_grid` (a fixed model rendering many images: eval, render, export)."""
         parts: dict[str, list[Tensor]] = {}
-        for i in range(0, origins.shape[0], chunk):
-            out = self.render_rays(origins[i : i + chunk], dirs[i : i + chunk], background[i : i + chunk])
-            for k, v in out.maps.items():
-                parts.setdefault(k, []).append(v.detach())
+        grid = self.image_grid() if fine_grid else None
+        with parametrize.cached():  # the weight-normed weights once per image, not once per query
+            for i in range(0, origins.shape[0], chunk):
+                out = self.render_rays(origins[i : i + chunk], dirs[i : i + chunk], background[i : i + chunk],
+                                       grid=grid)
+                for k, v in out.maps.items():
+                    parts.setdefault(k, []).append(v.detach())
         return {k: torch.cat(v) for k, v in parts.items()}
 
     # ----------------------------------------------------------------------------------------- losses

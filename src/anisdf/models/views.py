@@ -16,10 +16,11 @@ from anisdf.models.anisdf import AniSDFModel
 
 @torch.no_grad()
 def render_rays_to_maps(model: AniSDFModel, origins: torch.Tensor, dirs: torch.Tensor, bg: torch.Tensor,
-                        hw: tuple[int, int], chunk: int) -> dict[str, np.ndarray]:
-    """Float maps [H, W, C] on the CPU: rgb, normal (unit, world), depth, opacity, c_view, c_ref, weight."""
+                        hw: tuple[int, int], chunk: int, fine_grid: bool = False) -> dict[str, np.ndarray]:
+    """Float maps [H, W, C] on the CPU: rgb, normal (unit, world), depth, opacity, c_view, c_ref, weight.
+    ``fine_grid``: march the model's refined image grid (a fixed model rendering many views)."""
     h, w = hw
-    out = model.render_image(origins, dirs, bg, chunk)
+    out = model.render_image(origins, dirs, bg, chunk, fine_grid=fine_grid)
     maps: dict[str, np.ndarray] = {}
     for k, v in out.items():
         if k.startswith("_") or v.shape[0] != h * w:
@@ -57,10 +58,11 @@ def map_to_image(maps: dict[str, np.ndarray], name: str) -> np.ndarray:
     raise KeyError(f"unknown map {name!r}; one of {', '.join(MAP_NAMES)}")
 
 
-def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chunk: int) -> dict:
+def render_view(model: AniSDFModel, data: RayDataset, i: int, scene: Scene, chunk: int,
+                fine_grid: bool = False) -> dict:
     """Render view ``i`` of a split on a white background; returns maps, the target and its PSNR."""
     batch, hw = data.image(i)
-    maps = render_rays_to_maps(model, batch.origins, batch.directions, batch.background, hw, chunk)
+    maps = render_rays_to_maps(model, batch.origins, batch.directions, batch.background, hw, chunk, fine_grid)
     gt = batch.rgb.reshape(*hw, 3).float().cpu().numpy()
     mse = float(np.mean((np.clip(maps["rgb"], 0, 1) - gt) ** 2))
     return {"maps": maps, "gt": gt, "psnr": psnr_from_mse(mse), "hw": hw}

@@ -114,7 +114,7 @@ def export(run: Path, out: Path, options: ExportOptions | None = None, **changes
         log.info("export: appearance.kind=%s; the lobes are fitted to its colour all the same", cfg.appearance.kind)
     camera, up = _export_camera(rd.root, cfg, ck)
     tick("load")
-    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress)
+    mesh = mc(model.geometry.distance, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress)
     tick("marching_cubes")
     baked = bake(model, mesh, opts, progress=o.progress, timer=tick)
     manifest: dict[str, Any] = {

@@ -56,7 +56,7 @@ def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: s
     run = Path(run)
     dev = pick_device(o.device or "auto")
     cfg, model, ck = load_run(run, dev)
-    mesh = mc(model.geometry.sdf, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress,
+    mesh = mc(model.geometry.distance, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress,
               keep_inner=not o.remove_inner)
     if o.remove_floaters:
         mesh = drop_floaters(mesh, min_fraction=FLOATER_MIN_FRACTION)

@@ -52,7 +52,7 @@ def render(run: Path, options: RenderOptions | None = None, **changes: Any) -> P
     n = len(data) if o.max_views <= 0 else min(o.max_views, len(data))
     out_dir = RunDir(run).renders(o.split)
     for i in tqdm(range(n), desc=f"render {o.split}", unit="view"):
-        res = render_view(model, data, i, scene, cfg.renderer.eval_chunk_rays)
+        res = render_view(model, data, i, scene, cfg.renderer.eval_chunk_rays, fine_grid=True)
         for name in MAP_NAMES:
             key = "weight" if name == "w" else name
             if key in res["maps"]:
@@ -90,7 +90,8 @@ def render_orbit(model, scene, cfg, path: Path, n_frames: int, downscale: int, d
         origins, dirs = orbit.image_rays(i, max(int(downscale), 1))
         hw = dirs.shape[:2]
         origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-        maps = render_rays_to_maps(model, origins, dirs, torch.ones_like(dirs), hw, cfg.renderer.eval_chunk_rays)
+        maps = render_rays_to_maps(model, origins, dirs, torch.ones_like(dirs), hw, cfg.renderer.eval_chunk_rays,
+                                   fine_grid=True)
         fg = maps["opacity"][..., 0:1] > 0.5
         frames.append(np.concatenate([to_uint8(maps["rgb"]), normal_to_image(maps["normal"] * fg)], axis=1))
     return write_video(frames, path)

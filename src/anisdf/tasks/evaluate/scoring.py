@@ -70,7 +70,7 @@ def score_view(model, data, i: int, index: int, scene, ck: dict[str, Any], chunk
     from anisdf.models.views import render_view
     from anisdf.tasks.loading import dataset_camera
 
-    res = render_view(model, data, i, scene, chunk_rays)
+    res = render_view(model, data, i, scene, chunk_rays, fine_grid=True)
     pred = np.clip(res["maps"]["rgb"], 0.0, 1.0)
     image = scene.image_paths[index]
     row: dict[str, Any] = {"view": i, "image": image.name, "psnr": psnr(pred, res["gt"]), "ssim": ssim(pred, res["gt"])}
