@@ -166,6 +166,7 @@ def write_test_scene(
     center: tuple[float, float, float] = (0.3, -0.2, 0.1),
     sphere_radius: float = 0.5,
     normal_suffix: str = "_normal.png",
+    aim: tuple[float, float, float] | None = None,
 ) -> SceneTruth:
     """Write a tiny dataset of format ``fmt`` into ``root`` (created) and return its ground truth.
 
@@ -174,7 +175,9 @@ def write_test_scene(
     COLMAP (OPENCV model; PINHOLE without it); ``binary`` picks COLMAP's .bin or .txt; ``masks`` writes
     object masks (always for NeuS; nerf-synthetic uses alpha). nerf-synthetic holds out views 1 and N-2 as
     its test split, with world-space normal maps ``(n + 1) / 2`` named ``<image stem><normal_suffix>``
-    (``_normal.png`` as Shiny Blender, ``_normal_0001.png`` as NeRF-synthetic's test split).
+    (``_normal.png`` as Shiny Blender, ``_normal_0001.png`` as NeRF-synthetic's test split). ``aim``: the point the
+    cameras look at (default ``center``; elsewhere, the automatic region of interest of a capture without masks
+    misses the sphere).
     """
     if fmt not in TEST_FORMATS:
         raise ValueError(f"unknown format {fmt!r}")
@@ -189,7 +192,7 @@ def write_test_scene(
         elev = math.radians(25.0 if i % 2 == 0 else -10.0)
         ring = np.array([math.cos(elev) * math.cos(phi), math.cos(elev) * math.sin(phi), math.sin(elev)])
         eye = c + radius * ring
-        c2w.append(look_at(eye, c, up))
+        c2w.append(look_at(eye, c if aim is None else np.asarray(aim, dtype=np.float64), up))
         if fmt in ("nerf-synthetic", "llff"):  # a single focal length, centred principal point
             intr.append([base_f, base_f, width / 2, height / 2])
         else:

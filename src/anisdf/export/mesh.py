@@ -211,8 +211,10 @@ def extract_mesh(
     progress: bool = True,
     sparse: bool = True,
     keep_inner: bool = False,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> trimesh.Trimesh:
-    """Marching-cubes mesh of the zero level set of ``sdf_fn`` inside the box [-radius, radius]^3.
+    """Marching-cubes mesh of the zero level set of ``sdf_fn`` inside the box [-radius, radius]^3 (and inside the box
+    ``bounds`` = (lo, hi) when given: the mesh is open where the surface crosses it).
 
     ``sdf_fn`` maps [M, 3] points to [M] (or [M, 1]) signed distances, negative inside; it is called
     under ``torch.no_grad`` on chunks of ``chunk`` points on ``device``.
@@ -233,6 +235,11 @@ def extract_mesh(
         raise ValueError(f"resolution must be at least 2, got {resolution}")
     box_lo = np.full(3, -float(radius))
     box_hi = np.full(3, float(radius))
+    if bounds is not None:
+        box_lo = np.maximum(box_lo, np.asarray(bounds[0], dtype=np.float64))
+        box_hi = np.minimum(box_hi, np.asarray(bounds[1], dtype=np.float64))
+        if not np.all(box_hi > box_lo):
+            raise AnisdfError("mesh extraction: the box to mesh does not overlap the region of interest")
     res1 = min(resolution, max(64, resolution // 4)) if two_pass else resolution
     step, counts = _grid_axes(box_lo, box_hi, res1)
     vol = _eval_grid(sdf_fn, box_lo, step, counts, device, chunk, progress, f"mesh pass 1 ({res1}^3)")
@@ -240,7 +247,8 @@ def extract_mesh(
     if bounds is None:
         lo_v, hi_v = float(vol.min()), float(vol.max())
         raise AnisdfError(
-            f"mesh extraction: no surface found in the box [-{radius}, {radius}]^3 "
+            f"mesh extraction: no surface found in the box {np.round(box_lo, 4).tolist()} - "
+            f"{np.round(box_hi, 4).tolist()} "
             f"(the SDF does not change sign; its values range from {lo_v:.4g} to {hi_v:.4g})"
         )
     lo = box_lo
