@@ -1,8 +1,8 @@
 """``anisdf process-data --masks``: foreground masks of an object capture, without learned weights.
 
 Per view, GrabCut (OpenCV's graph-cut segmentation with colour mixture models) is seeded by the geometry SfM found:
-pixels outside the projection of the object's bounding sphere are background, the projected sparse points that lie
-inside the sphere mark probable foreground (their convex hull) and likely foreground (the points themselves).
+pixels outside the projection of the object's bounding sphere are background, the convex hull of the projected sparse
+points that lie inside the sphere is probable foreground, the rest of the sphere's projection probable background.
 A visual-hull pass then makes the views agree: a voxel of the sphere is kept when at least
 :data:`HULL_VOTE` of the views that see it call it foreground, the kept voxels are projected back into every view,
 and GrabCut runs again with everything outside that silhouette (grown by a margin) fixed as background. The masks
