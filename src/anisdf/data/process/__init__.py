@@ -193,6 +193,7 @@ def add_masks(scene: Path, progress: bool = True) -> dict[str, Any]:
     from PIL import Image
 
     from anisdf.data.dataparsers import load_scene
+    from anisdf.data.dataparsers.blender import resolve_image
     from anisdf.data.inspect import draw_scene
     from anisdf.data.process.masks import load_views, make_masks, require_cv2
 
@@ -208,7 +209,7 @@ def add_masks(scene: Path, progress: bool = True) -> dict[str, Any]:
         by_image[path.resolve()] = f"masks/{path.stem}.png"
     meta = json.loads((scene / "transforms.json").read_text())
     for frame in meta["frames"]:
-        frame["mask_path"] = by_image[(scene / frame["file_path"]).resolve()]
+        frame["mask_path"] = by_image[resolve_image(scene, str(frame["file_path"])).resolve()]
     meta["sparse_points_sphere"] = meta.pop("bounding_sphere", None)
     write_json(scene / "transforms.json", meta)
     loaded = load_scene(scene)
