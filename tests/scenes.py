@@ -166,6 +166,7 @@ def write_test_scene(
     center: tuple[float, float, float] = (0.3, -0.2, 0.1),
     sphere_radius: float = 0.5,
     normal_suffix: str = "_normal.png",
+    aim: tuple[float, float, float] | None = None,
 ) -> SceneTruth:
     """Write a tiny dataset of format ``fmt`` into ``root`` (created) and return its ground truth.
 
@@ -174,7 +175,9 @@ def write_test_scene(
     COLMAP (OPENCV model; PINHOLE without it); ``binary`` picks COLMAP's .bin or .txt; ``masks`` writes
     object masks (always for NeuS; nerf-synthetic uses alpha). nerf-synthetic holds out views 1 and N-2 as
     its test split, with world-space normal maps ``(n + 1) / 2`` named ``<image stem><normal_suffix>``
-    (``_normal.png`` as Shiny Blender, ``_normal_0001.png`` as NeRF-synthetic's test split).
+    (``_normal.png`` as Shiny Blender, ``_normal_0001.png`` as NeRF-synthetic's test split). ``aim``: the point the
+    cameras look at (default ``center``; elsewhere, the automatic region of interest of a capture without masks
+    misses the sphere).
     """
     if fmt not in TEST_FORMATS:
         raise ValueError(f"unknown format {fmt!r}")
@@ -189,7 +192,7 @@ def write_test_scene(
         elev = math.radians(25.0 if i % 2 == 0 else -10.0)
         ring = np.array([math.cos(elev) * math.cos(phi), math.cos(elev) * math.sin(phi), math.sin(elev)])
         eye = c + radius * ring
-        c2w.append(look_at(eye, c, up))
+        c2w.append(look_at(eye, c if aim is None else np.asarray(aim, dtype=np.float64), up))
         if fmt in ("nerf-synthetic", "llff"):  # a single focal length, centred principal point
             intr.append([base_f, base_f, width / 2, height / 2])
         else:
@@ -314,3 +317,84 @@ def _write_colmap(t: SceneTruth, binary: bool) -> None:
         (d / "points3D.bin").write_bytes(struct.pack("<Q", 0))
     else:
         (d / "points3D.txt").write_text("# empty\n")
+
+
+@dataclass
+class ObjectCapture:
+    root: Path
+    truth_masks: list[np.ndarray]
+    """[H,W] bool per view, the object's true silhouettes (in image order)."""
+
+
+def _object_hit(origin: np.ndarray, d: np.ndarray, spheres: list[tuple[np.ndarray, float]]
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hit distance (inf for a miss) and unit normal of rays against a union of spheres."""
+    t_best = np.full(len(d), np.inf)
+    n_best = np.zeros_like(d)
+    for c, r in spheres:
+        oc = origin - c
+        b = d @ oc
+        disc = b * b - (oc @ oc - r * r)
+        t = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+        t = np.where(t > 0, t, np.inf)
+        closer = t < t_best
+        t_best = np.where(closer, t, t_best)
+        n_best[closer] = (origin + t[closer, None] * d[closer] - c) / r
+    return t_best, n_best
+
+
+def write_object_capture(root: str | Path, n_images: int = 16, width: int = 64, height: int = 48,
+                         supersample: int = 2) -> ObjectCapture:
+    """A process-data style object capture without its masks: a striped orange object (two spheres) in a room
+    papered with a blue-grey checker, seen from a ring of cameras; ``transforms.json`` (instant-ngp, with anisdf's
+    ``bounding_sphere``) and ``sparse_pc.ply`` (points on the object and a few on the walls), as
+    ``anisdf process-data`` writes them. The true silhouettes are returned, not written."""
+    import trimesh
+
+    root = Path(root)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    spheres = [(np.array([0.0, 0.0, 0.0]), 0.5), (np.array([0.25, 0.1, 0.45]), 0.28)]
+    rng = np.random.default_rng(3)
+    f = 0.9 * width
+    frames, truths = [], []
+    s = supersample
+    sub = (np.arange(s) + 0.5) / s
+    for i in range(n_images):
+        phi = 2 * math.pi * i / n_images
+        elev = math.radians(30.0 if i % 2 == 0 else 5.0)
+        eye = 2.6 * np.array([math.cos(elev) * math.cos(phi), math.cos(elev) * math.sin(phi), math.sin(elev)])
+        c2w = look_at(eye, np.array([0.0, 0.0, 0.1]), np.array([0.0, 0.0, 1.0]))
+        px = (np.arange(width)[:, None] + sub[None]).reshape(-1)
+        py = (np.arange(height)[:, None] + sub[None]).reshape(-1)
+        gx, gy = np.meshgrid(px, py)
+        d = np.stack([(gx - width / 2) / f, (gy - height / 2) / f, np.ones_like(gx)], -1).reshape(-1, 3) @ c2w[:3, :3].T
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        t, n = _object_hit(eye, d, spheres)
+        hit = np.isfinite(t)
+        p = eye + np.where(hit, t, 0.0)[:, None] * d
+        stripes = 0.5 + 0.5 * np.sin(14.0 * p[:, 2] + 6.0 * p[:, 0])
+        shade = 0.45 + 0.55 * np.clip(n @ np.array([0.4, -0.3, 0.87]), 0.0, 1.0)
+        obj = np.stack([0.9 * np.ones_like(stripes), 0.35 + 0.25 * stripes, 0.1 + 0.05 * stripes], -1) * shade[:, None]
+        az, el = np.arctan2(d[:, 1], d[:, 0]), np.arcsin(np.clip(d[:, 2], -1, 1))
+        check = (np.floor(az * 6 / math.pi) + np.floor(el * 6 / math.pi)) % 2
+        light = 0.85 + 0.15 * np.cos(3 * az)
+        wall = np.where(check[:, None] > 0, [0.55, 0.6, 0.68], [0.25, 0.3, 0.42]) * light[:, None]
+        rgb = np.where(hit[:, None], obj, wall).reshape(height, s, width, s, 3).mean(axis=(1, 3))
+        cov = hit.astype(np.float64).reshape(height, s, width, s).mean(axis=(1, 3))
+        Image.fromarray(_u8(rgb), "RGB").save(root / "images" / f"view_{i:02d}.png")
+        truths.append(cov >= 0.5)
+        frames.append({"file_path": f"images/view_{i:02d}.png", "transform_matrix": (c2w @ GL_FROM_CV).tolist()})
+    surface = []
+    for c, r in spheres:
+        v = rng.standard_normal((150, 3))
+        surface.append(c + r * v / np.linalg.norm(v, axis=1, keepdims=True))
+    pts = np.concatenate(surface)
+    pts = pts[np.min([np.linalg.norm(pts - c, axis=1) - r for c, r in spheres], axis=0) > -1e-9]
+    walls = rng.standard_normal((20, 3))
+    pts = np.concatenate([pts, 6.0 * walls / np.linalg.norm(walls, axis=1, keepdims=True)])
+    trimesh.PointCloud(pts, colors=np.full((len(pts), 4), 200, np.uint8)).export(root / "sparse_pc.ply")
+    meta = {"w": width, "h": height, "fl_x": f, "fl_y": f, "cx": width / 2, "cy": height / 2,
+            "camera_model": "PINHOLE", "frames": frames, "ply_file_path": "sparse_pc.ply",
+            "bounding_sphere": {"center": [0.05, 0.02, 0.12], "radius": 0.95, "method": "sparse-points"}}
+    (root / "transforms.json").write_text(json.dumps(meta, indent=1))
+    return ObjectCapture(root, truths)

@@ -47,6 +47,12 @@ class DataConfig:
     images_dir: str = ""
     """LLFF / COLMAP / NeuS: read images from this sub-folder instead of the default (e.g. ``images_4`` for the
     Mip-NeRF 360 outdoor scenes, ``images_2`` for the indoor ones); intrinsics follow the size on disk."""
+    roi_center: tuple[float, ...] = ()
+    """Centre x,y,z of the region of interest (the sphere the scene is normalised to) in the dataset's own frame and
+    units, overriding the automatic one (``anisdf inspect`` prints it); empty: found automatically."""
+    roi_radius: float = 0.0
+    """Radius of the region of interest in the dataset's units, overriding the automatic one; 0: found
+    automatically."""
 
 
 @dataclass
@@ -269,8 +275,11 @@ def _spelling(value: Any, key: str) -> Any:
     old = _parse(value) if isinstance(value, str) and key in OLD_VALUES else value
     if isinstance(old, bool) and key in OLD_VALUES:
         return OLD_VALUES[key][old]
-    if isinstance(value, str) and typing.get_origin(tp) is tuple and re.fullmatch(r"\s*[(\[].*[)\]]\s*", value):
-        return _parse("[" + value.strip()[1:-1] + "]")
+    if isinstance(value, str) and typing.get_origin(tp) is tuple:
+        if re.fullmatch(r"\s*[(\[].*[)\]]\s*", value):
+            return _parse("[" + value.strip()[1:-1] + "]")
+        if "," in value:  # data.roi_center=0.1,0,-0.2
+            return _parse("[" + value + "]")
     if tp is int and isinstance(value, str | float):
         base, power, exp = str(value).partition("**")
         try:

@@ -14,6 +14,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "video": ("imageio_ffmpeg",),
     "cluster": ("ray",),
     "export": ("fast_simplification", "xatlas", "pygltflib"),
+    "masks": ("cv2",),
 }
 """Extra -> the modules it installs that anisdf imports (pyproject.toml's optional dependencies)."""
 

@@ -16,7 +16,7 @@ NAME = "process-data"
 
 @dataclass(kw_only=True)
 class Options(ProcessDataOptions):
-    input: Path = positional("folder of images, or a video file")
+    input: Path = positional("folder of images, or a video file (or, with --masks, a scene to add masks to)")
     out: Path = option(MISSING, "scene folder to write (images/, colmap/, transforms.json)")
     no_progress: bool = option(False, "no progress bars")
 
@@ -25,7 +25,10 @@ def run(opts: Options) -> int:
     from anisdf.data.process import process_data, summary_line
     from anisdf.data.process.inputs import is_video
 
-    extras.require(NAME, "colmap", None if is_video(opts.input) else ("pycolmap",))
+    if opts.masks:
+        extras.require(NAME, "masks")
+    if not (opts.masks and (opts.input / "transforms.json").is_file()):
+        extras.require(NAME, "colmap", None if is_video(opts.input) else ("pycolmap",))
     summary = process_data(opts.input, opts.out, base_options(opts, ProcessDataOptions),
                            progress=not opts.no_progress)
     print(json.dumps(summary, indent=2))

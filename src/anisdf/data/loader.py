@@ -12,7 +12,14 @@ import torch
 from anisdf.data.cameras import Cameras
 from anisdf.data.dataparsers._common import ParsedScene
 from anisdf.data.images import parallel_map, read_mask, read_normal, read_rgb, target_size
-from anisdf.data.normalize import RegionOfInterest, camera_roi, visual_hull_roi
+from anisdf.data.normalize import (
+    RegionOfInterest,
+    camera_roi,
+    check_roi_values,
+    check_user_roi,
+    user_roi,
+    visual_hull_roi,
+)
 from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, DataError
 
@@ -37,10 +44,12 @@ def _check_size(paths: list[Path], sizes: list[tuple[int, int]], ref: tuple[int,
                             "(all images of a scene must share one size)")
 
 
-def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0) -> Scene:
+def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0,
+                roi_center: tuple[float, ...] = (), roi_radius: float = 0.0) -> Scene:
     """Decode and normalise a parsed dataset (see :func:`anisdf.data.load_scene`)."""
     if not (math.isfinite(downscale) and downscale > 0):
         raise AnisdfError(f"downscale must be a positive number, got {downscale}")
+    check_roi_values(roi_center, roi_radius)
     warnings = list(parsed.warnings)
     keep = select_images(parsed, max_images)
     remap = {old: new for new, old in enumerate(keep)}
@@ -90,7 +99,14 @@ def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0
     c2w = parsed.c2w[keep]
     splits = {name: [remap[i] for i in idx if i in remap] for name, idx in parsed.splits.items()}
     coverage = masks if masks is not None else alpha
-    roi = find_roi(parsed, c2w, intr, distortion, w, h, coverage, splits["train"])
+    if roi_center and roi_radius > 0:
+        roi = user_roi(None, roi_center, roi_radius)
+    else:
+        roi = find_roi(parsed, c2w, intr, distortion, w, h, coverage, splits["train"])
+        if roi_center or roi_radius > 0:
+            roi = user_roi(roi, roi_center, roi_radius)
+    if roi.method.startswith("user"):
+        check_user_roi(roi, c2w, intr, w, h, [p.name for p in paths])
     warnings.extend(roi.warnings)
     to_world = roi.to_world()
     c2w_norm = c2w.copy()

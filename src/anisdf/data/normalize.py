@@ -15,6 +15,9 @@ Three strategies, in order of preference:
    the narrower side of a typical view at the look-at distance, plus 20% (instant-ngp's default scale puts
    its unit cube at a similar ~0.4 d). For forward-facing captures (nearly parallel axes) the centre is
    placed ``depth`` in front of the mean camera, with ``depth`` from the LLFF bounds when known.
+
+A user's region of interest (``data.roi_center`` / ``data.roi_radius``, :func:`user_roi`) replaces any of these
+(the part of it given); it is checked against the cameras (:func:`check_user_roi`).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from anisdf.data.cameras import Cameras, distort
+from anisdf.errors import AnisdfError
 
 HULL_RESOLUTION = 64
 HULL_PADDING = 1.1
@@ -39,6 +43,39 @@ CAMERA_ROI_MARGIN = 1.2
 """Camera-axes ROI radius = margin * d * sin(half fov): 1.2 keeps the fox's ears and plaque inside."""
 HULL_MIN_VISIBLE = 0.75
 """A voxel must project inside at least this fraction of the views to survive carving."""
+
+
+ROI_METHODS = {
+    "scale_mat": "the dataset's scale_mat (NeuS cameras file)",
+    "sparse-points": "the sparse SfM points (process-data's bounding sphere)",
+    "bounding-sphere": "the bounding_sphere of transforms.json",
+    "visual-hull": "the visual hull of the masks (or alpha)",
+    "camera-axes": "the camera rays (the point nearest every optical axis)",
+    "forward-facing": "the camera rays of a forward-facing capture (a point in front of the mean camera)",
+    "user": "the user's region of interest (data.roi_center, data.roi_radius)",
+}
+"""How a region of interest was found, as ``anisdf inspect`` says it."""
+
+
+def describe_roi_method(method: str) -> str:
+    """``method`` (a key of :data:`ROI_METHODS`, or ``user-center+<auto>`` / ``user-radius+<auto>``) in words."""
+    part, _, auto = method.partition("+")
+    if part == "user-center":
+        return f"centre given (data.roi_center), radius from {ROI_METHODS.get(auto, auto)}"
+    if part == "user-radius":
+        return f"radius given (data.roi_radius), centre from {ROI_METHODS.get(auto, auto)}"
+    return ROI_METHODS.get(method, method)
+
+
+def check_roi_values(center: tuple[float, ...] | list[float], radius: float) -> None:
+    """AnisdfError unless ``center`` is empty or three finite numbers and ``radius`` is 0 (automatic) or positive."""
+    if len(center) not in (0, 3):
+        raise AnisdfError(f"data.roi_center needs three numbers x,y,z (the dataset's frame), got {len(center)}: "
+                          f"{list(center)}")
+    if not all(math.isfinite(float(v)) for v in center):
+        raise AnisdfError(f"data.roi_center must be finite, got {list(center)}")
+    if not math.isfinite(radius) or radius < 0:
+        raise AnisdfError(f"data.roi_radius must be a positive number of dataset units (0: automatic), got {radius:g}")
 
 
 @dataclass
@@ -230,3 +267,42 @@ def _visual_hull_roi(cams: Cameras, coverage: torch.Tensor, resolution: int) -> 
     if radius > 0.9 * float(np.median(np.linalg.norm(c2w[:, :3, 3] - center, axis=1))):
         return None  # the sphere would swallow the cameras: too few or inconsistent views to trust
     return RegionOfInterest(center, radius, "visual-hull", warnings)
+
+
+def user_roi(auto: RegionOfInterest | None, center: tuple[float, ...] | list[float], radius: float
+             ) -> RegionOfInterest:
+    """The region of interest with the user's ``center`` (3 numbers, or empty) and ``radius`` (0: not given) put in
+    place of the automatic sphere ``auto``'s (None: both are given)."""
+    check_roi_values(center, radius)
+    if auto is None:
+        return RegionOfInterest(np.asarray(center, dtype=np.float64), float(radius), "user")
+    if center and radius > 0:
+        return RegionOfInterest(np.asarray(center, dtype=np.float64), float(radius), "user", auto.warnings)
+    if center:
+        return RegionOfInterest(np.asarray(center, dtype=np.float64), auto.radius, f"user-center+{auto.method}",
+                                auto.warnings)
+    return RegionOfInterest(auto.center, float(radius), f"user-radius+{auto.method}", auto.warnings)
+
+
+def check_user_roi(roi: RegionOfInterest, c2w: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
+                   names: list[str]) -> None:
+    """AnisdfError when the sphere holds a camera (the unit sphere must leave the cameras outside) or lies in no
+    camera's view: its centre must be in front of a camera, within the camera's diagonal half field of view plus
+    the angle the sphere spans from there."""
+    centers, dirs = c2w[:, :3, 3], c2w[:, :3, 2]
+    where = (f"the region of interest (centre {', '.join(f'{v:.4g}' for v in roi.center)}, radius {roi.radius:.4g}, "
+             "dataset frame)")
+    dist = np.linalg.norm(centers - roi.center, axis=1)
+    inside = np.nonzero(dist <= roi.radius)[0]
+    if len(inside):
+        i = int(inside[np.argmin(dist[inside])])
+        raise AnisdfError(f"{where} holds {len(inside)} of {len(c2w)} cameras (e.g. {names[i]}, at distance "
+                          f"{dist[i]:.4g} from its centre); the cameras must stay outside: make data.roi_radius "
+                          f"smaller than {dist.min():.4g} or move data.roi_center")
+    fx, fy = intrinsics[:, 0], intrinsics[:, 1]
+    half_diag = np.arctan(np.hypot(0.5 * width / fx, 0.5 * height / fy))
+    cos_off = np.einsum("ij,ij->i", roi.center - centers, dirs) / np.maximum(dist, 1e-12)
+    off_axis = np.arccos(np.clip(cos_off, -1.0, 1.0))
+    if not np.any(off_axis <= half_diag + np.arcsin(np.clip(roi.radius / dist, 0.0, 1.0))):
+        raise AnisdfError(f"{where} is in the view of none of the {len(c2w)} cameras; give it in the dataset's own "
+                          "frame and units (anisdf inspect prints the automatic one)")

@@ -221,8 +221,10 @@ def extract_mesh(
     sparse: bool = True,
     keep_inner: bool = False,
     region: Literal["sphere", "box"] = "sphere",
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> trimesh.Trimesh:
-    """Marching-cubes mesh of the zero level set of ``sdf_fn`` inside the box [-radius, radius]^3.
+    """Marching-cubes mesh of the zero level set of ``sdf_fn`` inside the box [-radius, radius]^3 (and inside the box
+    ``bounds`` = (lo, hi) when given: the mesh is open where the surface crosses it).
 
     ``region="sphere"`` (default) keeps only the part inside the sphere of ``radius``, the region training marches
     rays through (ray_marching.py): the SDF is read as ``max(sdf, |x| - radius)``, so the box's corners, which no
@@ -251,6 +253,12 @@ def extract_mesh(
     sphere = region == "sphere"
     box_lo = np.full(3, -float(radius))
     box_hi = np.full(3, float(radius))
+    crop = bounds
+    if crop is not None:
+        box_lo = np.maximum(box_lo, np.asarray(crop[0], dtype=np.float64))
+        box_hi = np.minimum(box_hi, np.asarray(crop[1], dtype=np.float64))
+        if not np.all(box_hi > box_lo):
+            raise AnisdfError("mesh extraction: the box to mesh does not overlap the region of interest")
     res1 = min(resolution, max(64, resolution // 4)) if two_pass else resolution
     step, counts = _grid_axes(box_lo, box_hi, res1)
     vol = _eval_grid(sdf_fn, box_lo, step, counts, device, chunk, progress, f"mesh pass 1 ({res1}^3)")
@@ -264,6 +272,9 @@ def extract_mesh(
     if bounds is None or not float(seen.min()) < 0.0 < float(seen.max()):
         lo_v, hi_v = float(seen.min()), float(seen.max())
         where = f"the sphere of radius {radius}" if sphere else f"the box [-{radius}, {radius}]^3"
+        if crop is not None:
+            where = f"the box {np.round(box_lo, 4).tolist()} - {np.round(box_hi, 4).tolist()}" + (
+                f" within the sphere of radius {radius}" if sphere else "")
         raise AnisdfError(
             f"mesh extraction: no surface found in {where} "
             f"(the SDF does not change sign; its values range from {lo_v:.4g} to {hi_v:.4g})"

@@ -12,7 +12,7 @@ import numpy as np
 
 from anisdf.errors import AnisdfError
 from anisdf.run_dir import RunDir
-from anisdf.utils.options import int_at_least, option
+from anisdf.utils.options import comma_list, int_at_least, option
 
 log = logging.getLogger("anisdf")
 
@@ -33,8 +33,36 @@ class MeshOptions:
         "cleaned)")
     remove_inner: bool = option(
         False, "drop surfaces around pockets enclosed inside the object (no camera outside sees them)")
+    bbox: list[float] | None = option(
+        None, "mesh only inside this box of the dataset's frame and units (xmin,ymin,zmin,xmax,ymax,zmax): faces "
+        "outside it are cut away", comma_list(float), metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX")
     device: str | None = option(None, "auto | cpu | cuda[:N]")
     progress: bool = option(True, "show a progress bar", cli=False)
+
+
+def check_bbox(bbox: list[float] | tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of ``bbox`` = xmin,ymin,zmin,xmax,ymax,zmax; AnisdfError unless six finite numbers with min < max."""
+    if len(bbox) != 6:
+        raise AnisdfError(f"--bbox needs six numbers xmin,ymin,zmin,xmax,ymax,zmax, got {len(bbox)}: {list(bbox)}")
+    box = np.asarray(bbox, dtype=np.float64)
+    if not np.isfinite(box).all():
+        raise AnisdfError(f"--bbox must be finite, got {list(bbox)}")
+    lo, hi = box[:3], box[3:]
+    if not np.all(hi > lo):
+        axis = "xyz"[int(np.argmax(hi <= lo))]
+        raise AnisdfError(f"--bbox: {axis}max must be greater than {axis}min, got {list(bbox)}")
+    return lo, hi
+
+
+def crop_mesh(mesh: Any, lo: np.ndarray, hi: np.ndarray, tol: float = 0.0) -> Any:
+    """``mesh`` without the faces that have a vertex outside the box [lo - tol, hi + tol] (unreferenced vertices
+    dropped)."""
+    v = np.asarray(mesh.vertices)
+    inside = np.all((v >= lo - tol) & (v <= hi + tol), axis=1)
+    out = mesh.copy()
+    out.update_faces(inside[np.asarray(mesh.faces)].all(axis=1))
+    out.remove_unreferenced_vertices()
+    return out
 
 
 def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: str = "extract-mesh",
@@ -43,7 +71,8 @@ def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: s
     RUN/mesh.<format>, with its settings in RUN/mesh.json (which ``eval`` reads); ``changes`` replace fields of
     ``options`` (``fmt`` is read as ``format``). Not cleaned unless asked: ``remove_floaters`` drops small
     disconnected pieces, ``remove_inner`` the shells around pockets enclosed inside the object
-    (docs/evaluation.md)."""
+    (docs/evaluation.md). ``bbox`` (xmin,ymin,zmin,xmax,ymax,zmax in the dataset's frame) meshes only that box, at
+    the full ``resolution`` along its longest side within the region of interest."""
     from anisdf.export.mesh import color_vertices, save_mesh, to_world
     from anisdf.export.mesh import extract_mesh as mc
     from anisdf.export.mesh import remove_floaters as drop_floaters
@@ -53,15 +82,28 @@ def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: s
     if "fmt" in changes:
         changes["format"] = changes.pop("fmt")
     o = dataclasses.replace(options or MeshOptions(), **changes)
+    box = None if o.bbox is None else check_bbox(o.bbox)
     run = Path(run)
     dev = pick_device(o.device or "auto")
     cfg, model, ck = load_run(run, dev)
+    world = np.asarray(ck["to_world"], dtype=np.float64)
+    bounds = None
+    if box is not None:  # a similarity with a positive uniform scale: the box maps to a box
+        scale, shift = float(np.cbrt(np.linalg.det(world[:3, :3]))), world[:3, 3]
+        bounds = ((box[0] - shift) / scale, (box[1] - shift) / scale)
+        if not np.all((bounds[1] > -model.radius) & (bounds[0] < model.radius)):
+            raise AnisdfError(f"--bbox {o.bbox} lies outside the region the run models (centre "
+                              f"{np.round(shift, 4).tolist()}, half-size {scale * model.radius:.4g}, dataset frame)")
     mesh = mc(model.geometry.distance, radius=model.radius, resolution=o.resolution, device=dev, progress=o.progress,
-              keep_inner=not o.remove_inner)
+              keep_inner=not o.remove_inner, bounds=bounds)
+    if box is not None:
+        mesh = crop_mesh(mesh, *bounds)
+        if len(mesh.faces) == 0:
+            raise AnisdfError(f"--bbox {o.bbox}: no surface inside the box")
     if o.remove_floaters:
         mesh = drop_floaters(mesh, min_fraction=FLOATER_MIN_FRACTION)
     mesh = color_vertices(mesh, model.diffuse_color, device=dev)
-    mesh = to_world(mesh, np.asarray(ck["to_world"], dtype=np.float64))
+    mesh = to_world(mesh, world)
     rd = RunDir(run)
     path = rd.mesh(o.format)
     save_mesh(mesh, path, o.format)
@@ -69,6 +111,7 @@ def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: s
             "resolution": int(o.resolution), "remove_floaters": bool(o.remove_floaters),
             "floater_min_fraction": FLOATER_MIN_FRACTION if o.remove_floaters else None,
             "remove_inner": bool(o.remove_inner), "two_pass": True, "margin": 0.1, "frame": "dataset",
+            "bbox": None if box is None else [float(v) for v in o.bbox],
             "vertices": len(mesh.vertices), "faces": len(mesh.faces)}
     rd.write_mesh_info(info)
     log.info("mesh: %d vertices, %d faces -> %s (%s)", len(mesh.vertices), len(mesh.faces), path,
@@ -78,7 +121,8 @@ def extract_mesh(run: Path, options: MeshOptions | None = None, *, written_by: s
 
 def describe_mesh(info: dict[str, Any]) -> str:
     return (f"resolution {info['resolution']}, floaters {'removed' if info['remove_floaters'] else 'kept'}, "
-            f"inner shells {'removed' if info['remove_inner'] else 'kept'}, step {info['step']}")
+            f"inner shells {'removed' if info['remove_inner'] else 'kept'}, step {info['step']}"
+            + (f", cropped to {info['bbox']}" if info.get("bbox") else ""))
 
 
 def mesh_for_eval(run: Path, step: int, requested: dict[str, Any], re_extract: bool) -> dict[str, Any] | None:

@@ -185,7 +185,8 @@ def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: 
     finished = False
     try:
         scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
-                           images_dir=cfg.data.images_dir)
+                           images_dir=cfg.data.images_dir, roi_center=cfg.data.roi_center,
+                           roi_radius=cfg.data.roi_radius)
         if ctx is None or ctx.is_main:
             for w in scene.warnings:
                 log.warning("warning: %s", w)

@@ -61,7 +61,8 @@ def parse_dataset(path: str | Path) -> ParsedScene:
 
 
 def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, images_dir: str = "",
-               split: str | None = None, to_world: np.ndarray | None = None) -> Scene:
+               split: str | None = None, to_world: np.ndarray | None = None, roi_center: tuple[float, ...] = (),
+               roi_radius: float = 0.0) -> Scene:
     """Load the dataset in folder ``path`` (format auto-detected) as a normalised :class:`Scene`.
 
     ``downscale`` divides the image size (antialiased resize; intrinsics scaled to match);
@@ -69,18 +70,23 @@ def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, im
     ``images_dir`` reads the same file names from another sub-folder (Mip-NeRF 360's ``images_4``), the intrinsics
     following the size found on disk. ``to_world`` imposes a known normalisation (a trained run's, so that a scene
     reloaded at another resolution lands in the frame the model was trained in) instead of finding the region of
-    interest; ``split`` then keeps only that split's views (the others are not decoded).
+    interest; ``split`` then keeps only that split's views (the others are not decoded). ``roi_center`` (x, y, z)
+    and ``roi_radius`` (> 0) replace the automatic region of interest's centre and radius (the dataset's frame and
+    units; ``data.roi_center`` / ``data.roi_radius``); a sphere that holds a camera or that no camera sees is an
+    error.
     """
     parsed = parse_dataset(path)
     if images_dir:
         parsed.image_paths = [_other_folder(p, Path(path) / images_dir) for p in parsed.image_paths]
     if to_world is not None:
         parsed.to_world = np.asarray(to_world, dtype=np.float64)
+        roi_center, roi_radius = (), 0.0  # the run's normalisation already holds its region of interest
     if split is not None:
         if to_world is None:
             raise ValueError("load_scene: split needs to_world (the normalisation cannot be found from one split)")
         parsed = _only_split(parsed, split)
-    return build_scene(parsed, downscale=downscale, max_images=max_images)
+    return build_scene(parsed, downscale=downscale, max_images=max_images, roi_center=tuple(roi_center),
+                       roi_radius=float(roi_radius))
 
 
 def _only_split(parsed: ParsedScene, split: str) -> ParsedScene:

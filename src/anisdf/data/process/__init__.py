@@ -60,6 +60,10 @@ class ProcessDataOptions:
         False, "write undistorted pinhole images even when anisdf could model the distortion", flag="--undistort")
     refine_principal_point: bool = option(
         False, "free the principal point in a last bundle adjustment (lenses with an off-centre one)")
+    masks: bool = option(
+        False, "also make foreground masks of the object (SCENE/masks/; GrabCut seeded by the sparse points and "
+        "the object's sphere, made consistent across views): the object presets and the visual-hull sphere then "
+        "apply. Given an existing scene as INPUT and as --out, adds the masks to it")
     progress: bool = option(True, "show progress bars", cli=False)
 
 
@@ -79,6 +83,10 @@ def process_data(input_path: str | Path, out: str | Path, options: ProcessDataOp
     vocab_tree, progress = o.vocab_tree, o.progress
     t_start = time.perf_counter()
     src, scene = Path(input_path), Path(out)
+    if o.masks and (src / "transforms.json").is_file():
+        if scene.resolve() != src.resolve():
+            raise DataError(scene, f"{src} is already a scene: --masks adds masks to it in place; give --out {src}")
+        return add_masks(src, progress)
     require_pycolmap()
     if not src.exists():
         raise DataError(src, "input does not exist (expected a folder of images or a video file)")
@@ -167,16 +175,65 @@ def process_data(input_path: str | Path, out: str | Path, options: ProcessDataOp
     draw_cameras(scene / "cameras.png", c2w_scene, poses.intrinsics, poses.width, poses.height, points,
                  poses.colors, sphere.radius, title)
     write_json(scene / "process_data.json", summary)
+    if o.masks:
+        summary = add_masks(scene, progress)
     for w in warnings:
         log.warning("warning: %s", w)
     return summary
 
 
+def add_masks(scene: Path, progress: bool = True) -> dict[str, Any]:
+    """Make the foreground masks of the process-data scene ``scene`` (:mod:`anisdf.data.process.masks`), write them
+    to ``scene/masks/``, name them in ``transforms.json`` (``mask_path``) in place of the sparse points' sphere, so that
+    the region of interest becomes the masks' visual hull, and redraw ``cameras.png`` around it. Returns the updated
+    summary (``process_data.json``)."""
+    import json
+
+    import numpy as np
+    from PIL import Image
+
+    from anisdf.data.dataparsers import load_scene
+    from anisdf.data.dataparsers.blender import resolve_image
+    from anisdf.data.inspect import draw_scene
+    from anisdf.data.process.masks import load_views, make_masks, require_cv2
+
+    require_cv2()
+    t0 = time.perf_counter()
+    views, paths = load_views(scene)
+    masks, stats = make_masks(views, progress)
+    mask_dir = scene / "masks"
+    mask_dir.mkdir(exist_ok=True)
+    by_image = {}
+    for path, mask in zip(paths, masks, strict=True):
+        Image.fromarray(mask.astype(np.uint8) * 255).save(mask_dir / (path.stem + ".png"))
+        by_image[path.resolve()] = f"masks/{path.stem}.png"
+    meta = json.loads((scene / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        frame["mask_path"] = by_image[resolve_image(scene, str(frame["file_path"])).resolve()]
+    meta["sparse_points_sphere"] = meta.pop("bounding_sphere", None)
+    write_json(scene / "transforms.json", meta)
+    loaded = load_scene(scene)
+    draw_scene(loaded, scene / "cameras.png")
+    summary_path = scene / "process_data.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {"scene": str(scene)}
+    summary.update({"scene": str(scene), "masks": "masks/", "mask_seconds": round(time.perf_counter() - t0, 2),
+                    "mask_mean_coverage": round(stats["mean_coverage"], 4), "sphere_method": loaded.roi_method,
+                    "sphere_radius": round(loaded.scene_radius, 6),
+                    "sphere_center": [round(float(v), 6) for v in loaded.center]})
+    summary["warnings"] = list(summary.get("warnings", [])) + loaded.warnings
+    write_json(summary_path, summary)
+    log.info("masks: %d views -> %s (mean coverage %.1f%%); region of interest now from %s", len(masks), mask_dir,
+             100 * stats["mean_coverage"], loaded.roi_method)
+    return summary
+
+
 def summary_line(summary: dict[str, Any]) -> str:
     """One human line: registered of total, reprojection error, points."""
+    if "n_registered" not in summary:
+        return f"masks -> {summary['scene']}/masks/ (see cameras.png)"
     return (f"{summary['n_registered']} of {summary['n_images']} images registered, mean reprojection error "
-            f"{summary['mean_reprojection_error_px']:.3f} px, {summary['n_points']} points "
-            f"-> {summary['scene']}/transforms.json (see cameras.png)")
+            f"{summary['mean_reprojection_error_px']:.3f} px, {summary['n_points']} points"
+            + (", masks" if "masks" in summary else "") + f" -> {summary['scene']}/transforms.json (see cameras.png)")
 
 
 __all__ = ["ProcessDataOptions", "process_data", "summary_line"]

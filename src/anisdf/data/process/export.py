@@ -211,7 +211,8 @@ def _frustum(c2w: np.ndarray, intrinsics: np.ndarray, width: int, height: int, s
 def draw_cameras(path: Path, c2w: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
                  points: np.ndarray, colors: np.ndarray, radius: float, title: str = "", panel: int = 600) -> None:
     """Top (looking down -z) and side (looking along +y) orthographic views of the camera frustums (the first
-    one green), the sparse points and the bounding sphere (red, centred at the origin), all in the scene frame."""
+    one green), the sparse points and the bounding sphere (red, centred at the origin), all in the scene frame.
+    ``intrinsics``: [4] shared by the cameras, or [N,4]."""
     centers = c2w[:, :3, 3]
     extent = max(float(np.abs(centers).max()), radius) * 1.15
     frustum_size = 0.12 * extent
@@ -233,7 +234,8 @@ def draw_cameras(path: Path, c2w: np.ndarray, intrinsics: np.ndarray, width: int
         (cu, cv), r_px = to_px(np.zeros(3)), radius * 0.5 * panel / extent
         draw.ellipse((cu - r_px, cv - r_px, cu + r_px, cv + r_px), outline=(220, 30, 30), width=2)
         for i in range(len(c2w) - 1, -1, -1):  # the first camera (green) last, on top
-            f = to_px(_frustum(c2w[i], intrinsics, width, height, frustum_size))
+            f = to_px(_frustum(c2w[i], intrinsics if intrinsics.ndim == 1 else intrinsics[i], width, height,
+                               frustum_size))
             colour = (20, 160, 20) if i == 0 else (30, 60, 200)
             for a, b in ((0, 1), (0, 2), (0, 3), (0, 4), (1, 2), (2, 3), (3, 4), (4, 1)):
                 draw.line((*f[a], *f[b]), fill=colour, width=1)
