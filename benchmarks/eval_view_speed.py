@@ -28,8 +28,12 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=2)
     ap.add_argument("--size", type=int, default=400, help="pixels on the longer side of each view")
     ap.add_argument("--compare", action="store_true", help="also render on the training grid")
+    ap.add_argument("--image-grid", type=int, default=None,
+                    help="renderer.image_grid_resolution to use (default: the run's)")
     args = ap.parse_args()
     cfg, model, ck = load_run(args.run)
+    if args.image_grid is not None:
+        cfg.renderer.image_grid_resolution = args.image_grid
     full = scene_for_run(args.run, cfg, ck, downscale=1.0, split="test")
     long_side = max(full.images.shape[1:3])
     scene = scene_for_run(args.run, cfg, ck, downscale=long_side / args.size, split="test")

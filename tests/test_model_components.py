@@ -336,6 +336,33 @@ def test_images_on_the_refined_grid_match_the_training_grid_with_fewer_samples(m
     assert (fine["opacity"] - coarse["opacity"]).abs().max() < 2e-3
 
 
+@pytest.mark.parametrize("segment", [1, 3, 8, 1000])
+def test_early_ray_termination_keeps_the_samples_of_the_one_pass_pruning(segment):
+    """prune_occluded_progressive queries the SDF a few samples a ray at a time and stops a ray once it is opaque:
+    the same samples are kept as by the one-pass estimate, from fewer SDF queries."""
+    from anisdf.model_components.neus_renderer import prune_occluded, prune_occluded_progressive
+
+    gen = torch.Generator().manual_seed(0)
+    n_rays, step = 300, 0.01
+    o = F.normalize(torch.randn(n_rays, 3, generator=gen), dim=-1) * 2.0
+    d = F.normalize(-o + 0.4 * torch.randn(n_rays, 3, generator=gen), dim=-1)
+    s = march(o, d, None, 1.0, step, 1024)
+    x = o[s.ray_idx] + d[s.ray_idx] * s.t[:, None]
+    sdf = _sphere_sdf(x)
+    inv_s = torch.tensor(200.0)
+    want = prune_occluded(sdf, s.t, s.ray_idx, n_rays, step, inv_s, 1e-3)
+    asked = []
+    got, seen = prune_occluded_progressive(lambda i: (asked.append(i), sdf[i])[1], s.t, s.ray_idx, n_rays, step,
+                                           inv_s, 1e-3, segment=segment)
+    assert torch.equal(got, want)
+    queried = torch.cat(asked)
+    assert queried.unique().numel() == queried.numel()  # no sample asked twice
+    torch.testing.assert_close(seen[queried], sdf[queried])
+    assert want.sum() < 0.7 * s.n  # the sphere hides samples behind it ...
+    if segment < 1000:
+        assert queried.numel() < 0.75 * s.n  # ... which early termination never queries
+
+
 def test_ray_occupancy_query_finds_the_cells_of_the_point_query():
     """The march's per-ray query (cell units, one axis at a time) picks the cells ``query`` picks for the same
     points; the two round differently only on cell faces (a few points in a million)."""

@@ -7,6 +7,9 @@ instant-nsr-pl): ``alpha = max((Phi_s(f_prev) - Phi_s(f_next)) / Phi_s(f_prev), 
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
 import torch
 from torch import Tensor, nn
 
@@ -63,14 +66,10 @@ def composite(values: Tensor, weights: Tensor, ray_idx: Tensor, n_rays: int) -> 
     return out.index_add_(0, ray_idx, src)
 
 
-@torch.no_grad()
-def prune_occluded(sdf: Tensor, t: Tensor, ray_idx: Tensor, n_rays: int, step: float, inv_s: Tensor,
-                   eps: float) -> Tensor:
-    """Mask of samples whose transmittance, estimated from SDF values alone, is still above ``eps``.
-
-    The directional derivative along the ray comes from the next sample of the same ray (NeuS' original
-    discretisation); where there is none it is taken as 0, which can only keep more samples.
-    """
+def _estimated_alpha(sdf: Tensor, t: Tensor, ray_idx: Tensor, step: float, inv_s: Tensor) -> Tensor:
+    """Section opacities from SDF values alone: the directional derivative along the ray comes from the next sample
+    of the same ray (NeuS' original discretisation); where there is none it is taken as 0 (opacity 0, which can
+    only keep more samples)."""
     same = torch.zeros_like(sdf, dtype=torch.bool)
     slope = torch.zeros_like(sdf)
     if sdf.shape[0] > 1:
@@ -81,6 +80,48 @@ def prune_occluded(sdf: Tensor, t: Tensor, ray_idx: Tensor, n_rays: int, step: f
     dt = torch.full_like(sdf, step)
     prev_cdf = torch.sigmoid((sdf - iter_cos * dt * 0.5) * inv_s)
     next_cdf = torch.sigmoid((sdf + iter_cos * dt * 0.5) * inv_s)
-    alpha = ((prev_cdf - next_cdf) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
-    _, trans = packed_weights(alpha, ray_idx, n_rays)
+    return ((prev_cdf - next_cdf) / (prev_cdf + 1e-5)).clamp(0.0, 1.0)
+
+
+@torch.no_grad()
+def prune_occluded(sdf: Tensor, t: Tensor, ray_idx: Tensor, n_rays: int, step: float, inv_s: Tensor,
+                   eps: float) -> Tensor:
+    """Mask of samples whose transmittance, estimated from SDF values alone (:func:`_estimated_alpha`), is still
+    above ``eps``."""
+    _, trans = packed_weights(_estimated_alpha(sdf, t, ray_idx, step, inv_s), ray_idx, n_rays)
     return trans > eps
+
+
+@torch.no_grad()
+def prune_occluded_progressive(sdf_at: Callable[[Tensor], Tensor], t: Tensor, ray_idx: Tensor, n_rays: int,
+                               step: float, inv_s: Tensor, eps: float, segment: int = 8) -> tuple[Tensor, Tensor]:
+    """:func:`prune_occluded` with early ray termination: the SDF (``sdf_at(sample indices)``) is queried
+    ``segment`` samples a ray at a time, front to back, and a ray stops being queried once its transmittance is
+    below ``eps``; samples behind that point cost nothing. Each segment also reads the next sample of its ray, so
+    the opacities are those of the one-pass estimate. Returns the keep mask and the SDF (NaN where not queried)."""
+    n = t.shape[0]
+    sdf = torch.full_like(t, float("nan"))
+    keep = torch.zeros(n, dtype=torch.bool, device=t.device)
+    if n == 0:
+        return keep, sdf
+    counts = torch.bincount(ray_idx, minlength=n_rays)
+    starts = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(n, device=t.device) - starts[ray_idx]
+    log_t = torch.zeros(n_rays, dtype=torch.float64, device=t.device)
+    for k0 in range(0, int(counts.max()), segment):
+        alive = log_t > math.log(eps)
+        window = (rank >= k0) & (rank <= k0 + segment) & alive[ray_idx]
+        idx = window.nonzero()[:, 0]
+        if idx.numel() == 0:
+            break
+        new = idx[torch.isnan(sdf[idx])]
+        if new.numel():
+            sdf[new] = sdf_at(new)
+        alpha = _estimated_alpha(sdf[idx], t[idx], ray_idx[idx], step, inv_s)
+        own = rank[idx] < k0 + segment  # the look-ahead sample belongs to the next segment
+        idx, alpha = idx[own], alpha[own]
+        r = ray_idx[idx]
+        _, trans = packed_weights(alpha, r, n_rays)
+        keep[idx] = trans * torch.exp(log_t[r]).to(trans.dtype) > eps
+        log_t.index_add_(0, r, torch.log((1.0 - alpha).clamp_min(1e-10)).double())
+    return keep, sdf

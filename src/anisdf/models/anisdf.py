@@ -25,6 +25,7 @@ from anisdf.model_components.neus_renderer import (
     neus_alpha,
     packed_weights,
     prune_occluded,
+    prune_occluded_progressive,
 )
 from anisdf.model_components.occupancy_grid import OccupancyGrid
 from anisdf.model_components.ray_marching import march
@@ -167,10 +168,18 @@ class AniSDFModel(nn.Module):
         inv_s = self.variance()
         n_marched = s.n
         if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
-            with torch.no_grad():
-                query = self.geometry.sdf if train else self.geometry.distance  # training keeps its numerics
-                sdf0 = query(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
-            keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(), rc.early_stop_eps)
+            if train:
+                with torch.no_grad():
+                    sdf0 = self.geometry.sdf(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
+                keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(),
+                                      rc.early_stop_eps)
+            else:  # images: front to back, a ray's samples behind its opaque point are never queried
+                def sdf_at(i: Tensor) -> Tensor:
+                    r = s.ray_idx[i]
+                    return self.geometry.distance(origins[r] + dirs[r] * s.t[i, None])
+
+                keep, _ = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
+                                                     inv_s.detach(), rc.early_stop_eps)
             s = s.select(keep)
         d = dirs[s.ray_idx]
         x = origins[s.ray_idx] + d * s.t[:, None]
