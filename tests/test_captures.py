@@ -178,3 +178,16 @@ def test_resume_is_exact_with_refinement_and_codes_and_the_poses_are_written_and
     assert "no learned correction" in result["protocol"]["cameras"]["poses"]
     assert np.isfinite(result["psnr"]) and model.image_codes.fixed is None
     assert appearance.appearance_record(model, "mean")["protocol"] == "mean"
+
+
+def test_a_resumed_run_keeps_the_parts_its_checkpoint_has():
+    """--resume of a run that trained without camera corrections or codes (a rendered scene, or a run from before
+    the switches) turns an auto switch off, so the model it builds matches the checkpoint."""
+    from anisdf.tasks.train import _settle_switches
+
+    cfg = load_config("cpu-quick")
+    _settle_switches(cfg, ["geometry.branches.0.grid.table"])
+    assert (cfg.cameras.refine, cfg.appearance.embedding) == ("off", "off")
+    cfg = load_config("cpu-quick")
+    _settle_switches(cfg, ["cameras.delta", "image_codes.codes"])
+    assert (cfg.cameras.refine, cfg.appearance.embedding) == ("auto", "auto")
