@@ -183,6 +183,9 @@ class AniSDFModel(nn.Module):
         d = dirs[s.ray_idx]
         x = origins[s.ray_idx] + d * s.t[:, None]
         sdf, feat, grad = self.geometry.with_gradient(x, create_graph=train, fd_eps=self.fd_eps())
+        if x.requires_grad:  # rays of refined cameras: the field treats x as a constant, so the SDF's first-order
+            # change with the sample point, sdf(x + dx) = sdf + grad . dx, carries the photometric gradient to the poses
+            sdf = sdf + (grad.detach() * (x - x.detach())).sum(-1)
         normal = F.normalize(grad, dim=-1)
         alpha = self.alpha_fn(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
         weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
@@ -208,7 +211,8 @@ class AniSDFModel(nn.Module):
         if not train:
             out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
             out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
-        samples = TrainingSamples(x, d, grad, normal, weights, s.ray_idx) if train else None
+        # the geometric losses do not move the cameras (no-op detaches without camera refinement)
+        samples = TrainingSamples(x.detach(), d.detach(), grad, normal, weights, s.ray_idx) if train else None
         return RenderOutput(out, inv_s.detach(), s.n, n_marched, samples)
 
     @torch.no_grad()
