@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -55,7 +56,9 @@ def perturb(data: Path, out: Path, rot_deg: float, move: float, seed: int) -> No
         P[:3, :4] = K @ np.linalg.inv(c2w)[:3, :4]
         cams[f"world_mat_{i}"] = P.astype(world.dtype)
         i += 1
-    np.savez(out / npz.name, **cams)
+    tmp = out / f".{npz.stem}.{os.getpid()}.npz"  # atomic: several runs may share the copy
+    np.savez(tmp, **cams)
+    os.replace(tmp, out / npz.name)
 
 
 def rotation_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -102,30 +102,6 @@ def _rotation_error_deg(a: torch.Tensor, b: torch.Tensor) -> float:
     return math.degrees(math.acos(float(cos.clamp(-1, 1))))
 
 
-def test_refinement_moves_a_perturbed_camera_toward_the_truth(toy_scene, tmp_path):
-    """One training camera of the toy scene turned by 2 deg and moved: a short training with refinement brings it
-    closer to its true pose (the other 15 cameras hold the scene in place)."""
-    cfg = load_config("cpu-quick", [*TINY, "cameras.refine=on", "cameras.start_step=20", "cameras.lr=2e-3",
-                                    "train.max_steps=150"])
-    scene = load_scene(toy_scene, downscale=1)
-    k = scene.splits["train"][3]
-    truth = scene.cameras.c2w[k].clone()
-    turn = torch.tensor(Rotation.from_rotvec(np.radians(2.0) * np.array([0.6, 0.8, 0.0])).as_matrix(),
-                        dtype=torch.float32)
-    scene.cameras.c2w[k, :, :3] = truth[:, :3] @ turn
-    scene.cameras.c2w[k, :, 3] += 0.02 * truth[:, 0]
-    before = (_rotation_error_deg(scene.cameras.c2w[k], truth),
-              float((scene.cameras.c2w[k, :, 3] - truth[:, 3]).norm()))
-    tr = Trainer(cfg, scene, tmp_path / "run", torch.device("cpu"), progress=False)
-    tr.fit()
-    new = tr.model.cameras.refined_poses()[k]
-    after = (_rotation_error_deg(new, truth), float((new[:, 3] - truth[:, 3]).norm()))
-    assert after[0] < 0.7 * before[0], (before, after)
-    others = [i for i in scene.splits["train"] if i != k]
-    drift = max(_rotation_error_deg(tr.model.cameras.refined_poses()[i], scene.cameras.c2w[i]) for i in others)
-    assert drift < after[0] + 0.5 * before[0]
-
-
 def _state(tr: Trainer) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
 

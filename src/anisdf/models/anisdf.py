@@ -180,8 +180,10 @@ class AniSDFModel(nn.Module):
                 sdf0 = self.geometry.sdf(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
             keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(), rc.early_stop_eps)
             s = s.select(keep)
-        d = dirs[s.ray_idx]
-        x = origins[s.ray_idx] + d * s.t[:, None]
+        # index_select: with refined cameras the rays carry gradients, and its backward (index_add) sums the
+        # samples of a ray in a fixed order where indexing's (a parallel scatter on CPU) does not: exact resume
+        d = dirs.index_select(0, s.ray_idx)
+        x = origins.index_select(0, s.ray_idx) + d * s.t[:, None]
         sdf, feat, grad = self.geometry.with_gradient(x, create_graph=train, fd_eps=self.fd_eps())
         if x.requires_grad:  # rays of refined cameras: the field treats x as a constant, so the SDF's first-order
             # change with the sample point, sdf(x + dx) = sdf + grad . dx, carries the photometric gradient to the poses
@@ -192,7 +194,7 @@ class AniSDFModel(nn.Module):
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
         extra = () if self.image_codes is None else (
-            (self.image_codes(None, n_rays) if codes is None else codes)[s.ray_idx[vis]],)
+            (self.image_codes(None, n_rays) if codes is None else codes).index_select(0, s.ray_idx[vis]),)
         col_vis = self.color_fn(x[vis] / self.radius, feat[vis], normal[vis], d[vis], *extra)
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}

@@ -69,9 +69,9 @@ class CameraRefinement(nn.Module):
         rot = self.poses[:, :, :3]
         turn = rot @ d_rot @ rot.transpose(1, 2)  # [N,3,3]: the correction as a world-frame rotation
         move = (rot @ d_t[..., None])[..., 0]
-        idx = cam_idx.long()
-        o = origins + move[idx]
-        d = (turn[idx] @ dirs[..., None])[..., 0]
+        idx = cam_idx.long()  # index_select: a deterministic backward (see AniSDFModel.render_rays)
+        o = origins + move.index_select(0, idx)
+        d = (turn.index_select(0, idx) @ dirs[..., None])[..., 0]
         return o, d
 
     def regulariser(self) -> Tensor:
@@ -109,7 +109,7 @@ class ImageCodes(nn.Module):
         if cam_idx is None:
             return self.untrained().expand(n, -1)
         idx = cam_idx.long()
-        return torch.where(self.trained[idx, None], self.codes[idx], self.untrained())
+        return torch.where(self.trained[idx, None], self.codes.index_select(0, idx), self.untrained())
 
 
 def dataset_poses(poses: Tensor, to_world: np.ndarray) -> np.ndarray:
