@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
@@ -95,11 +94,6 @@ def test_without_codes_the_radiance_field_is_the_plain_one():
     codes = RadianceField(cfg, 15, code_dim=8)
     out = codes(x, f, n, d, torch.randn(64, 8))
     assert out["rgb"].shape == (64, 3) and torch.isfinite(out["rgb"]).all()
-
-
-def _rotation_error_deg(a: torch.Tensor, b: torch.Tensor) -> float:
-    cos = ((a[:3, :3].T @ b[:3, :3]).trace() - 1) / 2
-    return math.degrees(math.acos(float(cos.clamp(-1, 1))))
 
 
 def _state(tr: Trainer) -> dict[str, torch.Tensor]:
