@@ -112,6 +112,29 @@ class AppearanceConfig:
     ref_hidden: int = 128
     ref_layers: int = 2
     pe_frequencies: int = 6
+    embedding: Literal["auto", "on", "off"] = "auto"
+    """A learned code per training image that the radiance heads take as an extra input (NeRF-W's appearance
+    embedding), which absorbs what changes from photo to photo: auto exposure, white balance, lighting. auto: on for
+    real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes
+    (nerf-synthetic / Blender format), whose images share one exposure. Views with no trained code (test views,
+    orbits, exports) use the mean of the training images' codes."""
+    embedding_dim: int = 16
+    """Size of the per-image appearance code."""
+
+
+@dataclass
+class CamerasConfig:
+    refine: Literal["auto", "on", "off"] = "auto"
+    """Learn a small rigid correction (rotation + translation, an se(3) vector, zero at the start) of every training
+    camera together with the scene, for poses that structure-from-motion got slightly wrong. auto: on for real photos
+    (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes (nerf-synthetic / Blender
+    format), whose cameras are exact. Test cameras are never corrected."""
+    lr: float = 1e-3
+    """Learning rate of the corrections (Adam; it follows the scene's warm-up and decay factor)."""
+    start_step: int = 200
+    """The corrections are frozen at zero until this schedule step, while the scene takes a first shape."""
+    reg: float = 1e-2
+    """Weight of the penalty ``mean over training cameras of |xi|^2`` that keeps the corrections small."""
 
 
 @dataclass
@@ -239,6 +262,7 @@ class Config:
     data: DataConfig = field(default_factory=DataConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    cameras: CamerasConfig = field(default_factory=CamerasConfig)
     renderer: RendererConfig = field(default_factory=RendererConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -264,8 +288,11 @@ def _hint(key: str) -> Any:
     return tp
 
 
-OLD_VALUES: dict[str, dict[bool, str]] = {"loss.curvature_decay": {True: "levels", False: "off"}}
-"""Keys that were booleans and are now choices: the old values are still read (presets, overrides, checkpoints)."""
+OLD_VALUES: dict[str, dict[bool, str]] = {"loss.curvature_decay": {True: "levels", False: "off"},
+                                          "cameras.refine": {True: "on", False: "off"},
+                                          "appearance.embedding": {True: "on", False: "off"}}
+"""Choices that also read a boolean: keys that were booleans (presets, overrides, checkpoints), and on / off switches
+(YAML reads ``on`` and ``off`` as booleans)."""
 
 
 def _spelling(value: Any, key: str) -> Any:

@@ -10,6 +10,7 @@ A run folder (``anisdf train DATA --out RUN``) holds::
     mesh.<ply|obj|glb>     extract-mesh's mesh, with its settings in mesh.json
     eval.json, eval/       eval's figures and panels; report.html / report.md
     renders/<split>/       render's images; renders/orbit.mp4
+    refined_cameras.json   the training cameras as given and as refined (cameras.refine), the dataset's frame
     job.json               a batch / reproduce runner's record of its attempts
 
 Every module that reads or writes these goes through :class:`RunDir`.
@@ -98,6 +99,11 @@ class RunDir:
     def job(self) -> Path:
         return self.root / "job.json"
 
+    @property
+    def refined_cameras(self) -> Path:
+        """The training cameras as given and as refined (``cameras.refine``), in the dataset's frame."""
+        return self.root / "refined_cameras.json"
+
     # ------------------------------------------------------------------------------------------ reading
     def has_checkpoint(self) -> bool:
         return self.checkpoint.is_file()
@@ -149,6 +155,13 @@ class RunDir:
         except (OSError, json.JSONDecodeError):
             return None
 
+    def read_refined_cameras(self) -> dict[str, Any] | None:
+        """refined_cameras.json, None when the run refines no camera (or it cannot be read)."""
+        try:
+            return json.loads(self.refined_cameras.read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
+
     def eval_panels(self) -> list[Path]:
         return sorted(self.eval_images.glob("*.png"))
 
@@ -170,3 +183,6 @@ class RunDir:
 
     def write_eval(self, content: dict[str, Any]) -> Path:
         return self.write_json(self.eval_json, content)
+
+    def write_refined_cameras(self, content: dict[str, Any]) -> Path:
+        return self.write_json(self.refined_cameras, content)

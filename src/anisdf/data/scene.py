@@ -11,6 +11,15 @@ from torch import Tensor
 from anisdf.data.cameras import Cameras
 
 FORMATS = ("nerf-synthetic", "neus", "instant-ngp", "llff", "colmap")
+RENDERED_FORMATS = ("nerf-synthetic",)
+"""Formats of rendered scenes: exact cameras and one exposure. Every other format holds photos (NeuS/DTU, LLFF,
+COLMAP, instant-ngp; process-data writes instant-ngp's transforms.json)."""
+
+
+def capture_switch(value: str, fmt: str) -> bool:
+    """An ``auto`` / ``on`` / ``off`` switch of what real photos need (``cameras.refine``, ``appearance.embedding``)
+    resolved for a scene of format ``fmt``: auto is on for photos, off for rendered scenes."""
+    return value == "on" or (value == "auto" and fmt not in RENDERED_FORMATS)
 
 
 @dataclass

@@ -120,7 +120,7 @@ def surface_points(model, x: Tensor, chunk: int = 1 << 16) -> tuple[Tensor, Tens
 @torch.no_grad()
 def model_colors(model, x: Tensor, feat: Tensor, normal: Tensor, view_dirs: Tensor, chunk: int = 1 << 16) -> Tensor:
     """The model's blended colour ``C`` [B, N, 3] at surface points ``x`` [B, 3] (feature, SDF normal) seen along
-    unit ``view_dirs`` [B, N, 3]."""
+    unit ``view_dirs`` [B, N, 3] (with the mean appearance code when the model has per-image codes)."""
     b, n, _ = view_dirs.shape
     out = torch.empty(b, n, 3, device=x.device)
     per = max(1, chunk // n)
@@ -128,7 +128,7 @@ def model_colors(model, x: Tensor, feat: Tensor, normal: Tensor, view_dirs: Tens
         e = min(s + per, b)
         m = (e - s) * n
         xs, fs, ns = (t[s:e, None, :].expand(e - s, n, t.shape[-1]).reshape(m, -1) for t in (x, feat, normal))
-        col = model.appearance(xs / model.radius, fs, ns, view_dirs[s:e].reshape(m, 3))
+        col = model.appearance(xs / model.radius, fs, ns, view_dirs[s:e].reshape(m, 3), *model.codes_for(None, m))
         out[s:e] = col["rgb"].reshape(e - s, n, 3).float()
     return out
 

@@ -31,11 +31,13 @@ def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
 
 
 class RadianceField(nn.Module):
-    def __init__(self, cfg: AppearanceConfig, feature_dim: int) -> None:
+    def __init__(self, cfg: AppearanceConfig, feature_dim: int, code_dim: int = 0) -> None:
+        """``code_dim`` > 0: the view and reflection heads also take a per-image appearance code of that size
+        (NeRF-W's appearance embedding; ``appearance.embedding``)."""
         super().__init__()
         self.cfg = cfg
         geo_in = feature_dim + 3
-        self.view_mlp = mlp(3 + geo_in + cfg.sh_degree**2, cfg.view_hidden, cfg.view_layers, 3)
+        self.view_mlp = mlp(3 + geo_in + cfg.sh_degree**2 + code_dim, cfg.view_hidden, cfg.view_layers, 3)
         if cfg.kind == "view":
             return
         self.weight_mlp = mlp(3 + geo_in, cfg.weight_hidden, cfg.weight_layers, 1)
@@ -46,13 +48,16 @@ class RadianceField(nn.Module):
             ref_in = self.n_lobes * 2 + 3 + 1
         else:
             ref_in = 3 * (1 + 2 * cfg.pe_frequencies) + 1 + geo_in
-        self.ref_mlp = mlp(ref_in, cfg.ref_hidden, cfg.ref_layers, 3)
+        self.ref_mlp = mlp(ref_in + code_dim, cfg.ref_hidden, cfg.ref_layers, 3)
 
-    def forward(self, x: Tensor, feat: Tensor, normal: Tensor, dirs: Tensor) -> dict[str, Tensor]:
+    def forward(self, x: Tensor, feat: Tensor, normal: Tensor, dirs: Tensor,
+                code: Tensor | None = None) -> dict[str, Tensor]:
         """Colour of points at ``x`` (in the unit sphere) with geometry feature ``feat`` and unit ``normal``, seen
-        along unit ``dirs``."""
+        along unit ``dirs``; ``code``: the points' appearance codes when the field takes them."""
         geo = torch.cat([feat, normal], dim=-1)
-        c_view = torch.sigmoid(self.view_mlp(torch.cat([x, geo, sh_encoding(dirs, self.cfg.sh_degree)], dim=-1)))
+        codes = () if code is None else (code.to(feat.dtype),)
+        c_view = torch.sigmoid(self.view_mlp(torch.cat([x, geo, sh_encoding(dirs, self.cfg.sh_degree), *codes],
+                                                       dim=-1)))
         if self.cfg.kind == "view":
             return {"rgb": c_view, "c_view": c_view}
         w = torch.sigmoid(self.weight_mlp(torch.cat([x, geo], dim=-1)))
@@ -63,9 +68,9 @@ class RadianceField(nn.Module):
             par = self.par_mlp(geo).view(-1, self.n_lobes, 4)
             lam, mu = F.softplus(par[..., 0]), F.softplus(par[..., 1])
             f_asg = asg_encode(refl, self.frames, lam, mu, par[..., 2:])
-            ref_in = torch.cat([f_asg, refl, n_dot_v], dim=-1)
+            ref_in = torch.cat([f_asg, refl, n_dot_v, *codes], dim=-1)
         else:
-            ref_in = torch.cat([positional_encoding(refl, self.cfg.pe_frequencies), n_dot_v, geo], dim=-1)
+            ref_in = torch.cat([positional_encoding(refl, self.cfg.pe_frequencies), n_dot_v, geo, *codes], dim=-1)
         c_ref = torch.sigmoid(self.ref_mlp(ref_in))
         rgb = w * c_view + (1.0 - w) * c_ref
         return {"rgb": rgb, "c_view": c_view, "c_ref": c_ref, "weight": w[:, 0]}

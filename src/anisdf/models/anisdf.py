@@ -29,6 +29,7 @@ from anisdf.model_components.neus_renderer import (
 )
 from anisdf.model_components.occupancy_grid import OccupancyGrid
 from anisdf.model_components.ray_marching import march
+from anisdf.models.per_image import CameraRefinement, ImageCodes
 
 
 @dataclass
@@ -75,13 +76,17 @@ class GridBroadcaster(Protocol):
 
 
 class AniSDFModel(nn.Module):
-    def __init__(self, cfg: Config, learn_background: bool = False) -> None:
+    def __init__(self, cfg: Config, learn_background: bool = False, trained: Tensor | None = None,
+                 camera_poses: Tensor | None = None, image_codes: bool = False) -> None:
+        """``trained``: [N] bool, which of the scene's N images train; with it, ``camera_poses`` ([N,3,4]) are refined
+        (``cameras.refine``) and ``image_codes`` gives every image an appearance code (``appearance.embedding``)."""
         super().__init__()
         self.cfg = cfg
         r = cfg.renderer
         self.radius = r.radius
         self.geometry = SDFField(cfg.geometry, radius=r.radius)
-        self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim)
+        code_dim = cfg.appearance.embedding_dim if image_codes and trained is not None else 0
+        self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim)
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
         self.grid = OccupancyGrid(r.grid_resolution, r.radius, band=math.log(4.0 / r.occupancy_threshold))
         # opaque photos without masks: what lies beyond the sphere is learned too
@@ -90,6 +95,9 @@ class AniSDFModel(nn.Module):
             self.background = (BackgroundNeRF(r.radius, r.background_samples,
                                               backend=cfg.geometry.encoding_backend)
                                if r.background_model == "nerf" else EnvironmentBackground())
+        self.cameras = CameraRefinement(camera_poses, trained) if camera_poses is not None and trained is not None \
+            else None
+        self.image_codes = ImageCodes(trained.shape[0], code_dim, trained) if code_dim else None
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         # the step as a Python int, which schedules read without waiting for the GPU (the buffer is for checkpoints)
         self.step_int = 0
@@ -158,9 +166,11 @@ class AniSDFModel(nn.Module):
 
     # ----------------------------------------------------------------------------------------- render
     def render_rays(self, origins: Tensor, dirs: Tensor, background: Tensor, train: bool = False,
-                    generator: torch.Generator | None = None, grid: OccupancyGrid | None = None) -> RenderOutput:
+                    generator: torch.Generator | None = None, codes: Tensor | None = None,
+                    grid: OccupancyGrid | None = None) -> RenderOutput:
         """Render rays (NeuS, Eq. 1): per-ray maps, and in training the per-sample tensors the losses read.
-        ``grid``: the occupancy grid to march (default: the training grid)."""
+        ``codes``: [B, dim] per-ray appearance codes (:meth:`codes_for`) when the model has them (default: the mean
+        code). ``grid``: the occupancy grid to march (default: the training grid)."""
         n_rays = origins.shape[0]
         rc = self.cfg.renderer
         s = march(origins, dirs, self.grid if grid is None else grid, self.radius, self.step_size,
@@ -181,15 +191,22 @@ class AniSDFModel(nn.Module):
                 keep, _ = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
                                                      inv_s.detach(), rc.early_stop_eps)
             s = s.select(keep)
-        d = dirs[s.ray_idx]
-        x = origins[s.ray_idx] + d * s.t[:, None]
+        # index_select: with refined cameras the rays carry gradients, and its backward (index_add) sums the
+        # samples of a ray in a fixed order where indexing's (a parallel scatter on CPU) does not: exact resume
+        d = dirs.index_select(0, s.ray_idx)
+        x = origins.index_select(0, s.ray_idx) + d * s.t[:, None]
         sdf, feat, grad = self.geometry.with_gradient(x, create_graph=train, fd_eps=self.fd_eps())
+        if x.requires_grad:  # rays of refined cameras: the field treats x as a constant, so the SDF's first-order
+            # change with the sample point, sdf(x + dx) = sdf + grad . dx, carries the photometric gradient to the poses
+            sdf = sdf + (grad.detach() * (x - x.detach())).sum(-1)
         normal = F.normalize(grad, dim=-1)
         alpha = self.alpha_fn(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
         weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
-        col_vis = self.color_fn(x[vis] / self.radius, feat[vis], normal[vis], d[vis])
+        extra = () if self.image_codes is None else (
+            (self.image_codes(None, n_rays) if codes is None else codes).index_select(0, s.ray_idx[vis]),)
+        col_vis = self.color_fn(x[vis] / self.radius, feat[vis], normal[vis], d[vis], *extra)
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
         opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)
@@ -207,7 +224,8 @@ class AniSDFModel(nn.Module):
         if not train:
             out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
             out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
-        samples = TrainingSamples(x, d, grad, normal, weights, s.ray_idx) if train else None
+        # the geometric losses do not move the cameras (no-op detaches without camera refinement)
+        samples = TrainingSamples(x.detach(), d.detach(), grad, normal, weights, s.ray_idx) if train else None
         return RenderOutput(out, inv_s.detach(), s.n, n_marched, samples)
 
     @torch.no_grad()
@@ -314,12 +332,23 @@ class AniSDFModel(nn.Module):
         """View-branch colour at ``x`` seen head-on (along -n): vertex colours for exported meshes."""
         _, feat, grad = self.geometry.with_gradient(x, create_graph=False, fd_eps=self.fd_eps())
         n = F.normalize(grad, dim=-1)
-        return self.appearance(x / self.radius, feat, n, -n)["c_view"]
+        return self.appearance(x / self.radius, feat, n, -n, *self.codes_for(None, x.shape[0]))["c_view"]
+
+    def codes_for(self, cam_idx: Tensor | None, n: int) -> tuple[Tensor, ...]:
+        """The appearance codes the radiance field takes for ``n`` rays or points of the images ``cam_idx`` (None:
+        the mean code) as a tuple of extra arguments: empty when the model has none."""
+        return () if self.image_codes is None else (self.image_codes(cam_idx, n),)
 
     def param_groups(self) -> list[dict]:
+        """The optimiser's groups: model, variance, and the camera corrections (own learning rate, no weight decay:
+        ``cameras.reg`` holds them) when refined."""
         var = [self.variance.variance]
-        other = [p for n, p in self.named_parameters() if not n.startswith("variance.")]
-        return [{"params": other, "name": "model"}, {"params": var, "name": "variance"}]
+        other = [p for n, p in self.named_parameters() if not n.startswith(("variance.", "cameras."))]
+        groups = [{"params": other, "name": "model"}, {"params": var, "name": "variance"}]
+        if self.cameras is not None:
+            groups.append({"params": [self.cameras.delta], "name": "cameras", "lr": self.cfg.cameras.lr,
+                           "weight_decay": 0.0})
+        return groups
 
 
 def _ramp(start: float, end: float, step: int, steps: int) -> float:

@@ -23,8 +23,13 @@ def load_run(run: Path, device: torch.device | str = "cpu"):
     torch.set_flush_denormal(True)
     ck = load_checkpoint(RunDir(run).checkpoint, map_location=device)
     cfg = config_from_dict(ck["config"])
-    learn_bg = any(k.startswith("background.") for k in ck["model"])
-    model = AniSDFModel(cfg, learn_background=learn_bg).to(device)
+    sd = ck["model"]
+    learn_bg = any(k.startswith("background.") for k in sd)
+    # per-image parts as trained (their auto switches were resolved from the dataset's format): shapes from the
+    # checkpoint, values loaded below
+    trained = sd.get("cameras.trained", sd.get("image_codes.trained"))
+    model = AniSDFModel(cfg, learn_background=learn_bg, trained=trained, camera_poses=sd.get("cameras.poses"),
+                        image_codes="image_codes.codes" in sd).to(device)
     model.load_state_dict(ck["model"])
     model.set_step(ck["state"]["step"])
     model.eval()
@@ -33,12 +38,20 @@ def load_run(run: Path, device: torch.device | str = "cpu"):
 
 def scene_for_run(run: Path, cfg, ck: dict[str, Any], downscale: float | None = None, split: str | None = None):
     """The run's dataset in the frame the model was trained in (the checkpoint's normalisation), at the training
-    resolution or at ``downscale``, every view or only ``split``'s."""
+    resolution or at ``downscale``, every view or only ``split``'s; training cameras as refined when the run refined
+    them (RUN/refined_cameras.json)."""
     from anisdf.data.dataparsers import load_scene
+    from anisdf.models.per_image import apply_refined_cameras
 
-    return load_scene(RunDir(run).data_path(ck), downscale=cfg.data.downscale if downscale is None else downscale,
-                      max_images=cfg.data.max_images if split in (None, "train") else 0,
-                      images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]))
+    scene = load_scene(RunDir(run).data_path(ck), downscale=cfg.data.downscale if downscale is None else downscale,
+                       max_images=cfg.data.max_images if split in (None, "train") else 0,
+                       images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]))
+    refined = RunDir(run).read_refined_cameras()
+    if refined is not None:  # training cameras as refined (cameras.refine); test cameras have no correction
+        n = apply_refined_cameras(scene, refined, np.asarray(ck["to_world"]))
+        if n:
+            log.info("%d training camera(s) as refined (%s)", n, RunDir(run).refined_cameras.name)
+    return scene
 
 
 def dataset_camera(scene, i: int, ck: dict[str, Any]):

@@ -73,6 +73,8 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
             set_key(wanted, key.strip(), value)
     have, want = _flat(saved.to_dict()), _flat(wanted.to_dict())
     for key, value in want.items():
+        if key in CAPTURE_SWITCHES and value == "auto":  # auto stands for what the run resolved it to
+            continue
         if not key.startswith("train.") and have.get(key) != value:
             raise AnisdfError(f"--resume: {key} is {have.get(key)!r} in {RunDir(out).config}, the given preset and "
                               f"overrides make it {value!r}; only train.* settings may change on --resume")
@@ -81,6 +83,19 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
         key, _, value = item.partition("=")
         set_key(cfg, key.strip(), value)
     return cfg
+
+
+CAPTURE_SWITCHES = {"cameras.refine": "cameras.", "appearance.embedding": "image_codes."}
+"""The ``auto`` switches of real photos and the prefix of the model parts they add (training/trainer.build_model)."""
+
+
+def _settle_switches(cfg: Config, model_keys: list[str]) -> None:
+    """A resumed run keeps the parts its checkpoint has: an ``auto`` switch of a run that trained without its part
+    (a rendered scene, or a run from before the switch existed) is set off."""
+    for key, prefix in CAPTURE_SWITCHES.items():
+        section, name = key.split(".")
+        if getattr(getattr(cfg, section), name) == "auto" and not any(k.startswith(prefix) for k in model_keys):
+            set_key(cfg, key, "off")
 
 
 AUTO_PRESETS = {"object": "nerf-synthetic", "unbounded": "mipnerf360"}
@@ -132,6 +147,7 @@ def _config(data: Path, out: Path, o: TrainOptions) -> tuple[Config, dict[str, A
         ck = load_checkpoint(ckpt_path)
         cfg = _resume_config(out, config_from_dict(ck["config"]), None if o.preset == "auto" else o.preset,
                              o.overrides or [])
+        _settle_switches(cfg, list(ck["model"]))
     else:
         if ckpt_path.exists():
             raise AnisdfError(f"{out}: already holds a run; pass --resume to continue it or choose another --out")

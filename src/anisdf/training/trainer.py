@@ -30,10 +30,11 @@ import torch
 
 from anisdf.config import Config
 from anisdf.data.rays import RayBatch, RayDataset, eval_background
-from anisdf.data.scene import Scene
+from anisdf.data.scene import Scene, capture_switch
 from anisdf.errors import TrainingDiverged
 from anisdf.eval.metrics import psnr_from_mse
 from anisdf.models.anisdf import AniSDFModel
+from anisdf.models.per_image import refined_cameras_record
 from anisdf.run_dir import RunDir
 from anisdf.training.checkpoint import atomic_save
 from anisdf.training.cpu_threads import ThreadTuner
@@ -41,7 +42,7 @@ from anisdf.training.distributed import Dist, rank_seed
 
 log = logging.getLogger("anisdf")
 
-LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "total")
+LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "camera", "total")
 """Every name AniSDFModel.losses can return."""
 
 
@@ -57,8 +58,18 @@ def lr_factor(step: int, cfg: Config) -> float:
 
 
 def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
+    """The model for ``scene``: a background field for photos without masks, and for real photos (``auto``
+    switches, :func:`~anisdf.data.scene.capture_switch`) camera corrections and appearance codes of the training
+    images."""
     learn_bg = scene.background == "opaque" and scene.masks is None
-    return AniSDFModel(cfg, learn_background=learn_bg).to(device)
+    refine = capture_switch(cfg.cameras.refine, scene.format)
+    codes = capture_switch(cfg.appearance.embedding, scene.format)
+    trained = torch.zeros(scene.n_images, dtype=torch.bool)
+    trained[list(range(scene.n_images)) if cfg.data.train_split == "all" else scene.splits["train"]] = True
+    log.info("%s (%s): camera refinement %s, per-image appearance codes %s", scene.root.name, scene.format,
+             "on" if refine else "off", "on" if codes else "off")
+    return AniSDFModel(cfg, learn_background=learn_bg, trained=trained if refine or codes else None,
+                       camera_poses=scene.cameras.c2w.cpu() if refine else None, image_codes=codes).to(device)
 
 
 @dataclass
@@ -194,6 +205,9 @@ class Trainer:
         states = self.dist.gather_generator_states(self.ray_gen) if self.dist is not None and gather else None
         if self.is_main:
             atomic_save({**self.state_dict(), **({"rank_generators": states} if states else {})}, self.ckpt_path)
+            if self.model.cameras is not None:  # the refined poses beside the originals, in the dataset's frame
+                self.run_dir.write_refined_cameras(refined_cameras_record(
+                    self.model.cameras, self.scene.image_paths, self.scene.root, self.scene.to_world, self.state.step))
 
     def write_run_files(self, status: str = "running") -> None:
         """``config.yaml`` and ``run.json`` (dataset, preset, normalisation, and the run's status: running, done,
@@ -207,7 +221,8 @@ class Trainer:
             "preset": self.cfg.preset, "to_world": np.asarray(self.scene.to_world).tolist(),
             "status": status, "step": self.state.step, "schedule_step": self.state.schedule_step,
             "schedule": "time" if self.budget_seconds > 0 else "steps", "train_seconds": self.state.train_seconds,
-            "world_size": self.world_size,
+            "world_size": self.world_size, "camera_refinement": self.model.cameras is not None,
+            "appearance_codes": self.model.image_codes is not None,
         })
 
     @property
@@ -223,6 +238,14 @@ class Trainer:
         """This process's rays for a step (the distributed test replaces it to give one process the ranks' union)."""
         return self.train_data.sample(n_rays, self.ray_gen)
 
+    def camera_rays(self, batch: RayBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The batch's rays, through the refined cameras from ``cameras.start_step`` on, and their appearance codes
+        (None without)."""
+        m, o, d = self.model, batch.origins, batch.directions
+        if m.cameras is not None and self.state.schedule_step >= self.cfg.cameras.start_step:
+            o, d = m.cameras(o, d, batch.cam_idx)
+        return o, d, None if m.image_codes is None else m.image_codes(batch.cam_idx, len(batch))
+
     def train_step(self) -> dict[str, float]:
         st, cfg, model = self.state, self.cfg, self.model
         if not model.training:  # train() walks every submodule; validation is what switches it off
@@ -237,9 +260,9 @@ class Trainer:
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
         batch = self.next_batch(st.n_rays)
+        origins, dirs, codes = self.camera_rays(batch)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_amp), model.cached_weights():
-            out = model.render_rays(batch.origins, batch.directions, batch.background, train=True,
-                                    generator=self.ray_gen)
+            out = model.render_rays(origins, dirs, batch.background, train=True, generator=self.ray_gen, codes=codes)
             if self.dist is None:
                 counts = (out.n_samples, out.n_marched)
                 terms = model.losses(out, batch.rgb, batch.mask, self.gen)
@@ -247,6 +270,9 @@ class Trainer:
                 counts = tuple(self.dist.sum_counts((out.n_samples, out.n_marched)))
                 share = self.world_size * out.n_samples / max(counts[0], 1)
                 terms = model.losses(out, batch.rgb, batch.mask, self.ray_gen, sample_share=share)
+        if model.cameras is not None and st.schedule_step >= cfg.cameras.start_step and cfg.cameras.reg > 0:
+            terms["camera"] = model.cameras.regulariser()
+            terms["total"] = terms["total"] + cfg.cameras.reg * terms["camera"]
         loss = terms["total"]
         self.opt.zero_grad(set_to_none=True)
         loss.backward()

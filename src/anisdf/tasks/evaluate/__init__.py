@@ -15,6 +15,7 @@ import numpy as np
 from anisdf.errors import AnisdfError
 from anisdf.eval.metrics import CHAMFER_POINTS
 from anisdf.run_dir import RunDir
+from anisdf.tasks.evaluate.appearance import PROTOCOLS as APPEARANCE_PROTOCOLS
 from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.options import float_at_least, int_at_least, option
 
@@ -50,6 +51,9 @@ class EvalOptions:
     re_extract: bool = option(False, "extract a new RUN/mesh.ply (and mesh.json) even when extract-mesh wrote one")
     baked: Path | None = option(None, "also score the asset anisdf export wrote to DIR, rendered as its viewer page "
                                 "draws it (baked_psnr, baked_ssim)", Path, metavar="DIR")
+    appearance: str = option("mean", "runs with per-image appearance codes (appearance.embedding): render each view "
+                             "with the mean code, or fit a code to the left half of the image and score the right "
+                             "half (NeRF-W)", choices=APPEARANCE_PROTOCOLS)
     device: str | None = option(None, "auto | cpu | cuda[:N] (default auto)")
     progress: bool = option(True, "show a progress bar over the views", cli=False)
 
@@ -58,6 +62,8 @@ def _check(o: EvalOptions) -> dict[str, Any]:
     """Refuse contradictory or out-of-range options before any work; returns the mesh settings asked for."""
     if o.normal_mask not in NORMAL_MASKS:
         raise AnisdfError(f"--normal-mask must be one of {', '.join(NORMAL_MASKS)}, got {o.normal_mask!r}")
+    if o.appearance not in APPEARANCE_PROTOCOLS:
+        raise AnisdfError(f"--appearance must be one of {', '.join(APPEARANCE_PROTOCOLS)}, got {o.appearance!r}")
     if not (o.eval_downscale > 0 and np.isfinite(o.eval_downscale)):
         raise AnisdfError(f"--eval-downscale must be a positive number, got {o.eval_downscale}")
     if o.chamfer_points <= 0:
@@ -119,6 +125,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     from anisdf.data.rays import RayDataset, eval_background
     from anisdf.eval.metrics import load_mesh
     from anisdf.models.views import panel
+    from anisdf.tasks.evaluate import appearance as codes
     from anisdf.tasks.evaluate import protocol as record
     from anisdf.tasks.evaluate import scoring
     from anisdf.tasks.evaluate.report import write_run_report
@@ -155,8 +162,10 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     normal_names: set[str] = set()
     skipped: list[dict[str, str]] = []
     for i in tqdm(range(n), desc=f"eval {o.split}", unit="view", disable=not o.progress):
-        row, res, normal_name, skip = scoring.score_view(model, data, i, ids[i], scene, ck,
-                                                         cfg.renderer.eval_chunk_rays, o.normal_mask, asset)
+        with codes.view_code(model, data, i, o.appearance):
+            row, res, normal_name, skip = scoring.score_view(
+                model, data, i, ids[i], scene, ck, cfg.renderer.eval_chunk_rays, o.normal_mask, asset,
+                right_half=o.appearance == "fit-left-half" and model.image_codes is not None)
         per_view.append(row)
         if normal_name is not None:
             normal_names.add(normal_name)
@@ -165,6 +174,8 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
         images.append(save_image(rd.eval_images / f"{i:03d}.png", panel(res)))
     metrics = scoring.mean_scores(per_view, o.split, baked=asset is not None)
     protocol = record.views_record(scene, cfg, o.split, n, held_out, o.eval_downscale, background)
+    protocol["cameras"] = codes.cameras_record(model, o.split, rd.read_refined_cameras() is not None)
+    protocol["appearance"] = codes.appearance_record(model, o.appearance)
     if asset is not None:
         protocol["baked"] = record.baked_record(o.baked, asset.manifest)
     n_maes = sum("normal_mae_deg" in r for r in per_view)

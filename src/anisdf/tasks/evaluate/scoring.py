@@ -57,11 +57,13 @@ def normal_map_skip(path: Path | None, scene, index: int, reference: np.ndarray)
 
 
 def score_view(model, data, i: int, index: int, scene, ck: dict[str, Any], chunk_rays: int, normal_mask: str,
-               asset=None) -> tuple[dict[str, Any], dict[str, Any], str | None, dict[str, str] | None]:
+               asset=None, right_half: bool = False
+               ) -> tuple[dict[str, Any], dict[str, Any], str | None, dict[str, str] | None]:
     """Render view ``i`` of ``data`` (``scene``'s image ``index``) and score it. Returns its row of eval.json's
     ``per_view``, the render (for :func:`anisdf.models.views.panel`; with ``baked`` / ``baked_psnr`` when ``asset``
     is scored too), the name pattern of its reference normal map (``<image>_normal.png``; None without one or when
     it is skipped) and, when that map is skipped rather than scored, ``{"file", "reason"}`` (:func:`normal_map_skip`).
+    ``right_half``: PSNR and SSIM of the columns ``>= W // 2`` only (NeRF-W's protocol, evaluate/appearance.py).
     """
     import torch
 
@@ -73,7 +75,9 @@ def score_view(model, data, i: int, index: int, scene, ck: dict[str, Any], chunk
     res = render_view(model, data, i, scene, chunk_rays, fine_grid=True)
     pred = np.clip(res["maps"]["rgb"], 0.0, 1.0)
     image = scene.image_paths[index]
-    row: dict[str, Any] = {"view": i, "image": image.name, "psnr": psnr(pred, res["gt"]), "ssim": ssim(pred, res["gt"])}
+    half = np.s_[:, pred.shape[1] // 2:] if right_half else np.s_[:, :]
+    row: dict[str, Any] = {"view": i, "image": image.name, "psnr": psnr(pred[half], res["gt"][half]),
+                           "ssim": ssim(pred[half], res["gt"][half])}
     if asset is not None:
         from anisdf.export.reference_renderer import render as render_baked
 

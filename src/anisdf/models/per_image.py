@@ -1,0 +1,171 @@
+"""What a real capture learns per training image: a correction of its camera and an appearance code.
+
+Camera refinement (``cameras.refine``): camera ``i``'s pose becomes ``c2w_i exp(xi_i)`` with ``xi_i = (omega, v)`` in
+se(3), zero at the start, the correction right-multiplied so that it acts in the camera's own frame (a rotation
+about the camera centre, a move along the camera's axes), as nerfstudio's SE3 camera optimiser. Appearance codes
+(``appearance.embedding``): NeRF-W's per-image embedding, zero at the start; a view with no trained code takes the
+mean of the training images' codes.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+
+def _skew(w: Tensor) -> Tensor:
+    """[...,3,3] cross-product matrices ``[w]_x``."""
+    zero = torch.zeros_like(w[..., 0])
+    wx, wy, wz = w.unbind(-1)
+    return torch.stack([zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], dim=-1).reshape(*w.shape[:-1], 3, 3)
+
+
+def se3_exp(xi: Tensor) -> tuple[Tensor, Tensor]:
+    """The exponential map of se(3): ``xi = (omega, v)`` ``[...,6]`` to a rotation ``[...,3,3]`` and translation
+    ``[...,3]``: ``R = I + A [w] + B [w]^2`` (Rodrigues) and ``t = (I + B [w] + C [w]^2) v`` with ``A = sin(th)/th``,
+    ``B = (1 - cos th)/th^2``, ``C = (th - sin th)/th^3``; Taylor series below ``th = 1e-2`` keep it exact and
+    differentiable at zero."""
+    w, v = xi[..., :3], xi[..., 3:]
+    th2 = (w * w).sum(-1, keepdim=True)[..., None]
+    small = th2 < 1e-4
+    th2s = torch.where(small, torch.ones_like(th2), th2)  # no 0/0 in the branch that is not taken
+    th = th2s.sqrt()
+    a = torch.where(small, 1 - th2 / 6 + th2 * th2 / 120, torch.sin(th) / th)
+    b = torch.where(small, 0.5 - th2 / 24 + th2 * th2 / 720, (1 - torch.cos(th)) / th2s)
+    c = torch.where(small, 1 / 6 - th2 / 120 + th2 * th2 / 5040, (th - torch.sin(th)) / (th2s * th))
+    k = _skew(w)
+    k2 = k @ k
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(k)
+    rot = eye + a * k + b * k2
+    t = ((eye + b * k + c * k2) @ v[..., None])[..., 0]
+    return rot, t
+
+
+class CameraRefinement(nn.Module):
+    """Per-camera se(3) corrections of ``poses`` ([N,3,4] camera-to-world, normalised frame); only the cameras
+    ``trained`` ([N] bool) are corrected, the others keep their pose."""
+
+    def __init__(self, poses: Tensor, trained: Tensor) -> None:
+        super().__init__()
+        self.delta = nn.Parameter(torch.zeros(poses.shape[0], 6))
+        self.register_buffer("poses", poses.detach().float().clone())
+        self.register_buffer("trained", trained.detach().bool().clone())
+
+    def corrections(self) -> tuple[Tensor, Tensor]:
+        """Each camera's correction ``exp(xi)`` as a rotation [N,3,3] and translation [N,3] (identity when frozen)."""
+        xi = self.delta * self.trained[:, None]
+        return se3_exp(xi)
+
+    def forward(self, origins: Tensor, dirs: Tensor, cam_idx: Tensor) -> tuple[Tensor, Tensor]:
+        """Rays of the corrected cameras: with ``c2w' = [R | o] [dR | dt]``, ``o' = o + R dt`` and
+        ``d' = R dR R^T d`` (unit directions stay unit)."""
+        d_rot, d_t = self.corrections()
+        rot = self.poses[:, :, :3]
+        turn = rot @ d_rot @ rot.transpose(1, 2)  # [N,3,3]: the correction as a world-frame rotation
+        move = (rot @ d_t[..., None])[..., 0]
+        idx = cam_idx.long()  # index_select: a deterministic backward (see AniSDFModel.render_rays)
+        o = origins + move.index_select(0, idx)
+        d = (turn.index_select(0, idx) @ dirs[..., None])[..., 0]
+        return o, d
+
+    def regulariser(self) -> Tensor:
+        """Mean over the trained cameras of ``|xi|^2``: keeps the corrections small (they are a nudge, and the
+        scene's frame should stay the one the test cameras live in)."""
+        return (self.delta[self.trained] ** 2).sum(-1).mean()
+
+    @torch.no_grad()
+    def refined_poses(self) -> Tensor:
+        """[N,3,4] corrected camera-to-world matrices ``c2w exp(xi)`` (normalised frame)."""
+        d_rot, d_t = self.corrections()
+        rot, origin = self.poses[:, :, :3], self.poses[:, :, 3]
+        return torch.cat([rot @ d_rot, (origin + (rot @ d_t[..., None])[..., 0])[..., None]], dim=-1)
+
+
+class ImageCodes(nn.Module):
+    """An appearance code per image ([N, dim], zero at the start); images not ``trained`` read the mean code, or
+    ``fixed`` when set (a code fitted to a test view, :mod:`anisdf.tasks.evaluate.appearance`)."""
+
+    def __init__(self, n_images: int, dim: int, trained: Tensor) -> None:
+        super().__init__()
+        self.codes = nn.Parameter(torch.zeros(n_images, dim))
+        self.register_buffer("trained", trained.detach().bool().clone())
+        self.fixed: Tensor | None = None
+
+    def mean(self) -> Tensor:
+        return self.codes[self.trained].mean(0)
+
+    def untrained(self) -> Tensor:
+        """[dim] the code of a view without its own: ``fixed``, else the mean."""
+        return self.fixed if self.fixed is not None else self.mean()
+
+    def forward(self, cam_idx: Tensor | None, n: int) -> Tensor:
+        """[n, dim] codes of the images ``cam_idx`` ([n]), :meth:`untrained`'s for the others or when None."""
+        if cam_idx is None:
+            return self.untrained().expand(n, -1)
+        idx = cam_idx.long()
+        return torch.where(self.trained[idx, None], self.codes.index_select(0, idx), self.untrained())
+
+
+def dataset_poses(poses: Tensor, to_world: np.ndarray) -> np.ndarray:
+    """[N,4,4] camera-to-world in the dataset's frame of normalised ``poses`` [N,3,4] (``to_world`` a similarity)."""
+    t = np.asarray(to_world, dtype=np.float64)
+    c2w = np.tile(np.eye(4), (poses.shape[0], 1, 1))
+    c2w[:, :3, :4] = poses.detach().double().cpu().numpy()
+    c2w = t @ c2w
+    c2w[:, :3, :3] /= np.cbrt(np.linalg.det(t[:3, :3]))
+    return c2w
+
+
+def normalised_poses(c2w: np.ndarray, to_world: np.ndarray) -> Tensor:
+    """The inverse of :func:`dataset_poses`: [N,3,4] normalised camera-to-world of dataset-frame ``c2w`` [N,4,4]."""
+    t = np.asarray(to_world, dtype=np.float64)
+    out = np.linalg.inv(t) @ np.asarray(c2w, dtype=np.float64)
+    out[:, :3, :3] *= np.cbrt(np.linalg.det(t[:3, :3]))
+    return torch.from_numpy(out[:, :3, :4]).float()
+
+
+def image_key(path: Path, root: Path) -> str:
+    """How refined_cameras.json names an image: its path inside the dataset folder (its file name when outside)."""
+    try:
+        return Path(os.path.abspath(path)).relative_to(os.path.abspath(root)).as_posix()  # symlinks as they are
+    except ValueError:
+        return Path(path).name
+
+
+def refined_cameras_record(refinement: CameraRefinement, image_paths: list[Path], root: Path,
+                           to_world: np.ndarray, step: int) -> dict[str, Any]:
+    """RUN/refined_cameras.json: every trained camera's pose as the dataset gives it and as refined, in the dataset's
+    frame, with the rotation (deg) and camera-centre move (dataset units) between them."""
+    idx = refinement.trained.nonzero()[:, 0].cpu()
+    original = dataset_poses(refinement.poses[idx], to_world)
+    refined = dataset_poses(refinement.refined_poses()[idx], to_world)
+    rel = np.einsum("nji,njk->nik", original[:, :3, :3], refined[:, :3, :3])
+    angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    move = np.linalg.norm(refined[:, :3, 3] - original[:, :3, 3], axis=-1)
+    cameras = [{"image": image_key(image_paths[i], root), "index": int(i), "rotation_deg": round(float(a), 6),
+                "translation": float(m), "original": o.tolist(), "refined": r.tolist()}
+               for i, a, m, o, r in zip(idx.tolist(), angle, move, original, refined, strict=True)]
+    return {"frame": "the dataset's own frame and units (as its camera files give the poses)",
+            "axes": "4x4 camera-to-world, OpenCV camera axes (x right, y down, z forward)",
+            "refined": "c2w exp(xi): the learned se(3) correction applied in the camera's frame",
+            "step": int(step), "mean_rotation_deg": float(angle.mean()), "mean_translation": float(move.mean()),
+            "cameras": cameras}
+
+
+def apply_refined_cameras(scene: Any, record: dict[str, Any], to_world: np.ndarray) -> int:
+    """Replace, in place, the cameras of ``scene`` (normalised by ``to_world``) that ``record`` (refined_cameras.json)
+    refined by their refined poses; returns how many."""
+    refined = {c["image"]: c["refined"] for c in record.get("cameras", [])}
+    hits = [(i, refined[k]) for i, p in enumerate(scene.image_paths) if (k := image_key(p, scene.root)) in refined]
+    if hits:
+        c2w = scene.cameras.c2w.clone()
+        poses = normalised_poses(np.asarray([r for _, r in hits]), to_world).to(c2w.device)
+        c2w[[i for i, _ in hits]] = poses
+        scene.cameras = replace(scene.cameras, c2w=c2w)
+    return len(hits)

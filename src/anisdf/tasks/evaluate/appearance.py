@@ -1,0 +1,84 @@
+"""The appearance code a scored view is rendered with, and what eval.json says about it and about the cameras.
+
+A test view has no trained appearance code (``appearance.embedding``). ``mean``: the mean of the training images'
+codes. ``fit-left-half``: NeRF-W's protocol (Martin-Brualla et al. 2021, Sec. 6): a code is fitted to the left half of
+the test image (the scene frozen), and only the right half is scored.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+import torch
+
+PROTOCOLS = ("mean", "fit-left-half")
+FIT_STEPS = 64
+FIT_RAYS = 1024
+FIT_LR = 0.05
+
+
+def fit_left_half(model, data, i: int, seed: int = 0) -> torch.Tensor:
+    """[dim] appearance code of view ``i`` of ``data`` fitted (Adam, :data:`FIT_STEPS` steps of :data:`FIT_RAYS`
+    random pixels, MSE) to the left half of its image (columns ``< W // 2``), starting from the mean code."""
+    batch, (h, w) = data.image(i)
+    left = ((torch.arange(h * w, device=batch.rgb.device) % w) < w // 2).nonzero()[:, 0]
+    code = model.image_codes.mean().detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([code], lr=FIT_LR)
+    gen = torch.Generator().manual_seed(seed)
+    frozen = [p for p in model.parameters() if p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        for _ in range(FIT_STEPS):
+            pick = left[torch.randint(left.numel(), (min(FIT_RAYS, left.numel()),), generator=gen).to(left.device)]
+            b = batch[pick]
+            with torch.enable_grad():
+                out = model.render_rays(b.origins, b.directions, b.background, codes=code.expand(len(b), -1))
+                loss = torch.mean((out.rgb.float() - b.rgb) ** 2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
+    return code.detach()
+
+
+@contextlib.contextmanager
+def view_code(model, data, i: int, protocol: str) -> Iterator[None]:
+    """Render view ``i`` with the code ``protocol`` gives it (nothing to do without codes, or for ``mean``)."""
+    codes = getattr(model, "image_codes", None)
+    if codes is None or protocol == "mean":
+        yield
+        return
+    codes.fixed = fit_left_half(model, data, i, seed=i)
+    try:
+        yield
+    finally:
+        codes.fixed = None
+
+
+def appearance_record(model, protocol: str) -> dict[str, Any]:
+    """eval.json's ``protocol.appearance``."""
+    if getattr(model, "image_codes", None) is None:
+        return {"codes": "none (appearance.embedding off): one appearance for every view", "scored": "whole image"}
+    if protocol == "mean":
+        return {"codes": "per training image (appearance.embedding)", "protocol": "mean",
+                "view_code": "the mean of the training images' codes, for every scored view", "scored": "whole image"}
+    return {"codes": "per training image (appearance.embedding)", "protocol": "fit-left-half",
+            "view_code": f"NeRF-W: fitted to the left half (columns < W // 2) of each scored image, the scene frozen: "
+                         f"Adam lr {FIT_LR}, {FIT_STEPS} steps of {FIT_RAYS} random pixels, MSE, from the mean code",
+            "scored": "right half (columns >= W // 2) for PSNR and SSIM; normal MAE on the whole image"}
+
+
+def cameras_record(model, split: str, refined: bool) -> dict[str, Any]:
+    """eval.json's ``protocol.cameras``: which poses the scored views were rendered from."""
+    if getattr(model, "cameras", None) is None:
+        return {"refine": False, "poses": "as the dataset gives them"}
+    return {"refine": True,
+            "poses": ("training cameras as refined in training (refined_cameras.json); cameras that did not train "
+                      "(held-out test views) have no learned correction and use the dataset's poses")
+            if refined else "as the dataset gives them (the run has no refined_cameras.json)",
+            "split": split}

@@ -1,0 +1,163 @@
+"""Real captures: camera refinement (se(3) corrections of the training cameras) and per-image appearance codes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from scenes import write_test_scene
+from scipy.linalg import expm
+from scipy.spatial.transform import Rotation
+from test_training import TINY
+
+from anisdf.config import load_config
+from anisdf.data.dataparsers import load_scene
+from anisdf.data.scene import capture_switch
+from anisdf.fields.radiance_field import RadianceField
+from anisdf.models.per_image import CameraRefinement, se3_exp
+from anisdf.run_dir import RunDir
+from anisdf.tasks.loading import load_run, scene_for_run
+from anisdf.training.trainer import Trainer, build_model
+
+
+def _hat(xi: np.ndarray) -> np.ndarray:
+    w, v = xi[:3], xi[3:]
+    m = np.zeros((4, 4))
+    m[:3, :3] = [[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]
+    m[:3, 3] = v
+    return m
+
+
+def test_se3_exp_matches_the_matrix_exponential_and_has_exact_gradients():
+    gen = torch.Generator().manual_seed(0)
+    xi = torch.randn(6, 6, generator=gen, dtype=torch.float64)
+    xi[0, :3] *= 1e-5  # the Taylor branch
+    xi[1, :3] = 0.0
+    xi[2] *= 3.0  # beyond pi
+    rot, t = se3_exp(xi)
+    ref = np.stack([expm(_hat(x)) for x in xi.numpy()])
+    np.testing.assert_allclose(rot.numpy(), ref[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(t.numpy(), ref[:, :3, 3], atol=1e-12)
+    np.testing.assert_allclose(rot.numpy(), Rotation.from_rotvec(xi[:, :3].numpy()).as_matrix(), atol=1e-12)
+    assert torch.autograd.gradcheck(se3_exp, (xi.clone().requires_grad_(),))
+    assert torch.autograd.gradcheck(se3_exp, (torch.zeros(2, 6, dtype=torch.float64, requires_grad=True),))
+
+
+def test_corrected_rays_are_the_rays_of_the_corrected_camera():
+    """Rays moved by CameraRefinement equal the rays of the camera c2w exp(xi) built directly."""
+    scene_c2w = torch.tensor(np.stack([expm(_hat(np.r_[0.3, -0.2, 0.5, 1.0, 2.0, -0.5]))[:3, :4],
+                                       expm(_hat(np.r_[-0.1, 0.4, 0.2, 0.0, 1.0, 2.0]))[:3, :4]]), dtype=torch.float32)
+    ref = CameraRefinement(scene_c2w, torch.tensor([True, False]))
+    with torch.no_grad():
+        ref.delta[:] = torch.tensor([[0.02, -0.01, 0.03, 0.05, -0.02, 0.01]] * 2)
+    d_cam = torch.nn.functional.normalize(torch.tensor([[0.1, -0.2, 1.0], [0.0, 0.3, 1.0]]), dim=-1)
+    cam = torch.tensor([0, 1])
+    pose = scene_c2w[cam]
+    with torch.no_grad():
+        o, d = ref(pose[:, :, 3], (pose[:, :, :3] @ d_cam[..., None])[..., 0], cam)
+    new = ref.refined_poses()
+    np.testing.assert_allclose(o[0], new[0, :, 3], atol=1e-6)
+    np.testing.assert_allclose(d[0], new[0, :, :3] @ d_cam[0], atol=1e-6)
+    np.testing.assert_allclose(o[1], scene_c2w[1, :, 3], atol=1e-6)  # untrained: unchanged
+    np.testing.assert_allclose(new[1], scene_c2w[1], atol=1e-6)
+
+
+@pytest.mark.parametrize("fmt", ["nerf-synthetic", "neus", "llff", "colmap", "instant-ngp"])
+def test_switches_are_off_for_rendered_scenes_and_on_for_photos(tmp_path, fmt):
+    write_test_scene(tmp_path / fmt, fmt)
+    scene = load_scene(tmp_path / fmt)
+    photos = fmt != "nerf-synthetic"
+    model = build_model(load_config("cpu-quick", TINY), scene, torch.device("cpu"))
+    assert (model.cameras is not None, model.image_codes is not None) == (photos, photos)
+    off = build_model(load_config("cpu-quick", [*TINY, "cameras.refine=off", "appearance.embedding=false"]), scene,
+                      torch.device("cpu"))
+    assert off.cameras is None and off.image_codes is None
+    assert capture_switch("on", "nerf-synthetic") and not capture_switch("off", fmt)
+    if photos:
+        assert model.cameras.trained.tolist() == [i in scene.splits["train"] for i in range(scene.n_images)]
+
+
+def test_without_codes_the_radiance_field_is_the_plain_one():
+    """appearance.embedding off: the same parameters from the same seed and the same colours."""
+    cfg = load_config("cpu-quick", TINY).appearance
+    torch.manual_seed(0)
+    plain = RadianceField(cfg, 15)
+    torch.manual_seed(0)
+    again = RadianceField(cfg, 15, code_dim=0)
+    x, f, n, d = (torch.randn(64, k) for k in (3, 15, 3, 3))
+    n, d = torch.nn.functional.normalize(n, dim=-1), torch.nn.functional.normalize(d, dim=-1)
+    assert all(torch.equal(a, b) for a, b in zip(plain.state_dict().values(), again.state_dict().values(),
+                                                  strict=True))
+    assert torch.equal(plain(x, f, n, d)["rgb"], again(x, f, n, d)["rgb"])
+    codes = RadianceField(cfg, 15, code_dim=8)
+    out = codes(x, f, n, d, torch.randn(64, 8))
+    assert out["rgb"].shape == (64, 3) and torch.isfinite(out["rgb"]).all()
+
+
+def _state(tr: Trainer) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+
+
+def test_resume_is_exact_with_refinement_and_codes_and_the_poses_are_written_and_used(tmp_path, monkeypatch):
+    """A colmap capture (both switches on by default): 4 steps straight equal 2 + resume + 2, bit for bit;
+    refined_cameras.json holds the trained cameras in the dataset's frame, scene_for_run renders them from it, eval
+    records the protocol."""
+    from anisdf.tasks.evaluate import appearance, evaluate
+
+    truth = write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
+    scene = load_scene(tmp_path / "s")
+    cfg = load_config("cpu-quick", [*TINY, "cameras.start_step=1", "cameras.lr=1e-2"])
+    straight = Trainer(cfg, scene, tmp_path / "a", torch.device("cpu"), progress=False)
+    assert straight.model.cameras is not None and straight.model.image_codes is not None
+    for _ in range(4):
+        straight.train_step()
+    part = Trainer(cfg, scene, tmp_path / "b", torch.device("cpu"), progress=False)
+    part.train_step()
+    part.train_step()
+    part.save()
+    resumed = Trainer(cfg, load_scene(tmp_path / "s"), tmp_path / "b", torch.device("cpu"), progress=False)
+    resumed.load_state_dict(torch.load(part.ckpt_path, weights_only=False))
+    resumed.train_step()
+    stats = resumed.train_step()
+    a, b = _state(straight), _state(resumed)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert stats["camera"] > 0 and a["cameras.delta"].abs().max() > 0 and a["image_codes.codes"].abs().max() > 0
+
+    resumed.write_run_files("done")
+    resumed.save()
+    record = json.loads(RunDir(tmp_path / "b").refined_cameras.read_text())
+    train = scene.splits["train"]
+    assert [c["index"] for c in record["cameras"]] == train
+    names = {c["image"]: c for c in record["cameras"]}
+    first = names[truth.image_paths[train[0]].relative_to(tmp_path / "s").as_posix()]
+    np.testing.assert_allclose(first["original"], truth.c2w[train[0]], atol=1e-4)  # the dataset's own frame
+    assert first["rotation_deg"] > 0
+    cfg2, model, ck = load_run(tmp_path / "b")
+    assert torch.equal(model.cameras.delta, b["cameras.delta"])
+    used = scene_for_run(tmp_path / "b", cfg2, ck)
+    refined = model.cameras.refined_poses()
+    np.testing.assert_allclose(used.cameras.c2w[train], refined[train], atol=1e-5)
+    test = scene.splits["test"]
+    assert torch.equal(used.cameras.c2w[test], scene.cameras.c2w[test])  # no correction for test cameras
+    monkeypatch.setattr(appearance, "FIT_STEPS", 4)
+    result = evaluate(tmp_path / "b", split="test", appearance="fit-left-half", progress=False)
+    assert result["protocol"]["appearance"]["protocol"] == "fit-left-half"
+    assert result["protocol"]["appearance"]["scored"].startswith("right half")
+    assert "no learned correction" in result["protocol"]["cameras"]["poses"]
+    assert np.isfinite(result["psnr"]) and model.image_codes.fixed is None
+    assert appearance.appearance_record(model, "mean")["protocol"] == "mean"
+
+
+def test_a_resumed_run_keeps_the_parts_its_checkpoint_has():
+    """--resume of a run that trained without camera corrections or codes (a rendered scene, or a run from before
+    the switches) turns an auto switch off, so the model it builds matches the checkpoint."""
+    from anisdf.tasks.train import _settle_switches
+
+    cfg = load_config("cpu-quick")
+    _settle_switches(cfg, ["geometry.branches.0.grid.table"])
+    assert (cfg.cameras.refine, cfg.appearance.embedding) == ("off", "off")
+    cfg = load_config("cpu-quick")
+    _settle_switches(cfg, ["cameras.delta", "image_codes.codes"])
+    assert (cfg.cameras.refine, cfg.appearance.embedding) == ("auto", "auto")
