@@ -160,7 +160,7 @@ class Fit:
             self.step += 1
             self.seconds += time.monotonic() - t0
             if on_step:
-                on_step(self.step, float(mse))
+                on_step(self.step, float(mse.detach()))
 
     def state_dict(self) -> dict:
         return {"material": self.material.state_dict(), "light": self.light.state_dict(),

@@ -58,6 +58,23 @@ def _training_views(run: Path, cfg, ck: dict[str, Any], max_views: int) -> list:
              None if cover is None else cover[i].float().numpy() / 255.0) for i in idx]
 
 
+def _load_model(run: Path):
+    """The run's model on the CPU with the plain PyTorch hash grid (the same numbers as the compiled kernel; the
+    surface is taken once, so the kernel's build or its lock is not worth waiting for)."""
+    from anisdf.config import config_from_dict
+    from anisdf.models.anisdf import AniSDFModel
+    from anisdf.training.checkpoint import load_checkpoint
+
+    ck = load_checkpoint(RunDir(run).checkpoint)
+    raw = dict(ck["config"])
+    raw["geometry"] = {**raw["geometry"], "encoding_backend": "torch"}
+    cfg = config_from_dict(raw)
+    model = AniSDFModel(cfg, learn_background=any(k.startswith("background.") for k in ck["model"]))
+    model.load_state_dict(ck["model"])
+    model.set_step(ck["state"]["step"])
+    return cfg, model.eval(), ck
+
+
 def _surface(rd: RunDir, o: MaterialsOptions, cfg, model, ck):
     from anisdf.materials.surface import Surface, surface_of_model
 
@@ -74,7 +91,6 @@ def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any
     from anisdf.materials.asset import load_fitted
     from anisdf.materials.environment import write_env
     from anisdf.materials.fit import Fit, FitSettings, gather_samples, linear
-    from anisdf.tasks.loading import load_run
     from anisdf.training.checkpoint import atomic_save, load_checkpoint
 
     o = dataclasses.replace(options or MaterialsOptions(), **changes)
@@ -84,7 +100,7 @@ def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any
     if not rd.has_checkpoint():
         raise AnisdfError(f"{rd.root}: no trained run here (checkpoints/last.pt is missing)")
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    cfg, model, ck = load_run(rd.root, "cpu")
+    cfg, model, ck = _load_model(rd.root)
     surface = _surface(rd, o, cfg, model, ck)
     del model
     views = _training_views(rd.root, cfg, ck, o.max_views)

@@ -92,7 +92,7 @@ def relight(run: Path, out: Path, options: RelightOptions | None = None, **chang
     from anisdf.materials.render import prepare_light, render_view
     from anisdf.utils.atomic import atomic_path, write_text_atomic
 
-    o = dataclasses.replace(options or RelightOptions(), **changes)
+    o = dataclasses.replace(options, **changes) if options is not None else RelightOptions(**changes)
     start = time.monotonic()
     fitted = load_fitted(run)
     env = torch.from_numpy(read_env(o.env))
