@@ -102,9 +102,8 @@ def _sphere_scene(n_views: int = 6, size: int = 24):
                       torch.as_tensor(mesh.faces, dtype=torch.long))
     truth = MaterialGrid(torch.full((3,), -1.1), torch.full((3,), 1.1), 2)
     with torch.no_grad():  # base colour (0.6, 0.15, 0.12), roughness 0.3, metallic ~0
-        truth.grid[:, :3] = torch.logit(torch.tensor([0.6, 0.15, 0.12])).view(1, 3, 1, 1, 1)
-        truth.grid[:, 3] = math.log((0.3 - 0.02) / (1 - 0.3))
-        truth.grid[:, 4] = -8.0
+        truth.mean.copy_(torch.tensor([*torch.logit(torch.tensor([0.6, 0.15, 0.12])).tolist(),
+                                       math.log((0.3 - 0.02) / (1 - 0.3)), -8.0]))
     d = env_mod.texel_directions(8, 16)
     light = 0.4 + 1.5 * torch.relu(d @ torch.tensor([0.3, 0.2, 0.93]))[..., None] * torch.tensor([1.0, 0.9, 0.8])
     pre = prepare_light(light, samples=32, rows=8)

@@ -39,21 +39,24 @@ def linear(x: Tensor) -> Tensor:
 
 
 class MaterialGrid(nn.Module):
-    """glTF base colour, roughness and metallic on a ``res``^3 trilinear grid over the box ``lo``..``hi``."""
+    """glTF base colour, roughness and metallic on a ``res``^3 trilinear grid over the box ``lo``..``hi``: the
+    sigmoids of one value shared by the whole surface plus the grid's trilinear residual. The shared value sees
+    every sample of every step, so the object's overall material settles in a few hundred steps; the residual
+    (each cell seen only by the samples near it) adds the spatial variation."""
 
     def __init__(self, lo: Tensor, hi: Tensor, res: int = 64) -> None:
         super().__init__()
         self.register_buffer("lo", lo.float().clone())
         self.register_buffer("hi", hi.float().clone())
-        init = torch.tensor([0.0, 0.0, 0.0, 0.0, -4.0])  # base 0.5, roughness ~0.5, metallic ~0.02
-        self.grid = nn.Parameter(init.view(1, 5, 1, 1, 1).repeat(1, 1, res, res, res))
+        self.mean = nn.Parameter(torch.tensor([0.0, 0.0, 0.0, 0.0, -4.0]))  # base 0.5, roughness ~0.5, metal ~0.02
+        self.grid = nn.Parameter(torch.zeros(1, 5, res, res, res))
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Base colour [M, 3], roughness [M], metallic [M] at points ``x`` [M, 3]."""
         u = ((x - self.lo) / (self.hi - self.lo).clamp_min(1e-9)) * 2.0 - 1.0
         g = F.grid_sample(self.grid, u.flip(-1).view(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border",
                           align_corners=True)
-        v = g.view(5, -1).T
+        v = g.view(5, -1).T + self.mean
         base = torch.sigmoid(v[:, :3])
         rough = MIN_ROUGHNESS + (1.0 - MIN_ROUGHNESS) * torch.sigmoid(v[:, 3])
         return base, rough, torch.sigmoid(v[:, 4])
