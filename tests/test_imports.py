@@ -177,6 +177,7 @@ LAYERS = (
     ("anisdf.models",),
     ("anisdf.training",),
     ("anisdf.export",),
+    ("anisdf.materials",),
     ("anisdf.tasks",),
     ("anisdf.viewer",),
     ("anisdf.orchestration",),

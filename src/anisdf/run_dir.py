@@ -12,6 +12,8 @@ A run folder (``anisdf train DATA --out RUN``) holds::
     renders/<split>/       render's images; renders/orbit.mp4
     refined_cameras.json   the training cameras as given and as refined (cameras.refine), the dataset's frame
     job.json               a batch / reproduce runner's record of its attempts
+    materials/             anisdf materials: surface.ply, fit.pt (the fit, resumable), light.hdr, materials.json
+    relight/<light>/       eval --relight's renders under each light
 
 Every module that reads or writes these goes through :class:`RunDir`.
 """
@@ -103,6 +105,34 @@ class RunDir:
     def refined_cameras(self) -> Path:
         """The training cameras as given and as refined (``cameras.refine``), in the dataset's frame."""
         return self.root / "refined_cameras.json"
+
+    @property
+    def materials(self) -> Path:
+        """``anisdf materials``'s folder."""
+        return self.root / "materials"
+
+    @property
+    def materials_surface(self) -> Path:
+        """The surface the material lives on (dataset frame, with vertex normals)."""
+        return self.materials / "surface.ply"
+
+    @property
+    def materials_checkpoint(self) -> Path:
+        """The material and light fit (atomic; a later ``anisdf materials`` continues from it)."""
+        return self.materials / "fit.pt"
+
+    @property
+    def materials_light(self) -> Path:
+        """The fitted light, an equirectangular map in the dataset's frame."""
+        return self.materials / "light.hdr"
+
+    @property
+    def materials_info(self) -> Path:
+        return self.materials / "materials.json"
+
+    def relight(self, light: str) -> Path:
+        """eval --relight's renders under ``light``."""
+        return self.root / "relight" / light
 
     # ------------------------------------------------------------------------------------------ reading
     def has_checkpoint(self) -> bool:

@@ -28,6 +28,8 @@ COMMANDS = {
     "render": "render views and maps (normal, depth, c_view, c_ref, w, opacity)",
     "eval": "PSNR, SSIM, normal MAE and Chamfer -> RUN/eval.json + report",
     "export": "bake a run into a real-time asset: model.glb, specular_*.png, index.html",
+    "materials": "fit a light and a PBR material (base colour, roughness, metallic) -> RUN/materials/",
+    "relight": "render the PBR asset under another light -> OUT/",
     "chamfer": "Chamfer distance between two meshes (last line)",
     "dtu-chamfer": "official DTU accuracy / completeness / Chamfer in mm (last line)",
     "process-data": "camera poses for your own photos or video (pycolmap) -> SCENE",

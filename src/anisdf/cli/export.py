@@ -29,6 +29,6 @@ def run(opts: Options) -> int:
     from anisdf.tasks.export import export
 
     manifest = export(opts.run, opts.out, base_options(opts, ExportOptions), progress=not opts.no_progress)
-    print(json.dumps({k: manifest[k] for k in SUMMARY_KEYS}, indent=2))
-    print(opts.out / "index.html")
+    print(json.dumps({k: manifest[k] for k in SUMMARY_KEYS if k in manifest}, indent=2))
+    print(opts.out / ("model.glb" if opts.pbr else "index.html"))
     return 0

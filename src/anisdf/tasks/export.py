@@ -42,6 +42,8 @@ class ExportOptions:
     pixel_filter: float = option(0.6, "sigma in pixels of the Gaussian that filters those samples into pixels (0: each "
                                       "pixel's own s x s box); 0.6 matches the path-traced training images best "
                                       "(benchmarks/RESULTS.md)", float_at_least(0.0))
+    pbr: bool = option(False, "write the PBR asset of `anisdf materials` instead: model.glb with baseColorTexture and "
+                              "metallicRoughnessTexture, light.hdr (the fitted light) and export.json")
     device: str | None = option(None, "auto (CUDA if available) | cpu | cuda[:N]")
     progress: bool = option(True, "show progress bars", cli=False)
 
@@ -94,6 +96,8 @@ def export(run: Path, out: Path, options: ExportOptions | None = None, **changes
         raise AnisdfError("--out must not be the run folder itself")
     o.validate()
     require_bake_modules()
+    if o.pbr:
+        return _export_pbr(rd, out, o)
     from anisdf.export.asset_files import AssetFolder, write_asset
     from anisdf.export.bake import bake
     from anisdf.export.mesh import extract_mesh as mc
@@ -138,4 +142,31 @@ def export(run: Path, out: Path, options: ExportOptions | None = None, **changes
     log.info("export: %d faces, %d px diffuse, %d px lobes x %d -> %s (%.1f MB: %s) in %.0f s", len(baked.faces),
              opts.texture, opts.spec_size, opts.lobes, out, manifest["total_bytes"] / 1e6,
              ", ".join(f"{k} {v / 1e6:.2f} MB" for k, v in sizes.items()), manifest["seconds"])
+    return manifest
+
+
+def _export_pbr(rd: RunDir, out: Path, o: ExportOptions) -> dict[str, Any]:
+    """``--pbr``: the fitted material as glTF PBR textures (:mod:`anisdf.materials.pbr_asset`), the light beside."""
+    import tempfile
+    import time
+
+    from anisdf import __version__
+    from anisdf.export.asset_files import AssetFolder
+    from anisdf.materials import pbr_asset
+    from anisdf.materials.asset import load_fitted
+    from anisdf.materials.environment import write_env
+
+    start = time.perf_counter()
+    fitted = load_fitted(rd.root)
+    glb, stats = pbr_asset.bake_pbr(fitted, o.faces, o.texture)
+    with tempfile.TemporaryDirectory() as tmp:
+        light = write_env(Path(tmp) / pbr_asset.LIGHT, fitted.light.numpy()).read_bytes()
+    manifest: dict[str, Any] = {"format": "anisdf-pbr", "anisdf": __version__, "run": str(rd.root.resolve()),
+                                "frame": "dataset", "light_frame": "dataset, z up (equirectangular)", **stats}
+    with AssetFolder(out, stale=()) as folder:
+        sizes = {pbr_asset.GLB: folder.write(pbr_asset.GLB, glb), pbr_asset.LIGHT: folder.write(pbr_asset.LIGHT, light)}
+        manifest.update(files=sizes, total_bytes=int(sum(sizes.values())),
+                        seconds=round(time.perf_counter() - start, 2))
+        folder.write(pbr_asset.MANIFEST, (json.dumps(manifest, indent=2) + "\n").encode("utf-8"))
+    log.info("export --pbr: %d faces, %d px textures -> %s", stats["faces"], o.texture, out)
     return manifest

@@ -54,6 +54,10 @@ class EvalOptions:
     appearance: str = option("mean", "runs with per-image appearance codes (appearance.embedding): render each view "
                              "with the mean code, or fit a code to the left half of the image and score the right "
                              "half (NeRF-W)", choices=APPEARANCE_PROTOCOLS)
+    relight: Path | None = option(None, "also relight the PBR asset of `anisdf materials` under each light of FOLDER "
+                                  "(LIGHT/r_i.png, LIGHT_world.exr) and score it (relight: psnr, ssim per light; "
+                                  "material errors where FOLDER/material.json gives the truth)", Path,
+                                  metavar="FOLDER")
     device: str | None = option(None, "auto | cpu | cuda[:N] (default auto)")
     progress: bool = option(True, "show a progress bar over the views", cli=False)
 
@@ -193,6 +197,10 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
         metrics.update(mesh_metrics)
         protocol["mesh"] = record.mesh_record(mesh_info)
         protocol.update(mesh_protocol)
+    if o.relight is not None:
+        from anisdf.tasks.evaluate.relight import relight_scores
+
+        metrics["relight"], protocol["relight"] = relight_scores(run, o.relight, o.progress)
     metrics.update(steps=step, train_seconds=float(ck["state"]["train_seconds"]), preset=cfg.preset)
     rd.write_eval({**metrics, "protocol": protocol, "per_view": per_view})
     write_run_report(run, metrics, per_view, images, protocol=protocol, up=dataset_up(scene, ck))

@@ -185,7 +185,9 @@ def write_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     cols = _columns(per_view)
     mean = _mean_row(per_view, cols) if cols else None
-    head_rows = [{"metric": k, "value": v} for k, v in metrics.items()]
+    head_rows = [{"metric": k, "value": v} for k, v in metrics.items() if not isinstance(v, dict)]
+    head_rows += [{"metric": r["setting"], "value": r["value"]}  # nested scores (relight) as "relight.studio.psnr"
+                  for r in flatten({k: v for k, v in metrics.items() if isinstance(v, dict)})]
     html_path, md_path = paths or (out_dir / "report.html", out_dir / "report.md")
     rels = [_rel(Path(p), out_dir) for p in images]
 
