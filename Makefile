@@ -24,7 +24,7 @@ $(BIN)/python:
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q "$(TORCH)"
-	$(BIN)/pip install -q -e ".[dev,video,colmap,viewer,export]"
+	$(BIN)/pip install -q -e ".[dev,video,colmap,viewer,export,materials,masks]"
 	touch $@
 
 # Ray (anisdf batch / reproduce --ray) only for the tests, which run a local Ray; users add it with anisdf[cluster]

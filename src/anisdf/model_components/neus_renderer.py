@@ -95,9 +95,10 @@ def prune_occluded(sdf: Tensor, t: Tensor, ray_idx: Tensor, n_rays: int, step: f
 @torch.no_grad()
 def prune_occluded_progressive(sdf_at: Callable[[Tensor], Tensor], t: Tensor, ray_idx: Tensor, n_rays: int,
                                step: float, inv_s: Tensor, eps: float, segment: int = 8) -> tuple[Tensor, Tensor]:
-    """:func:`prune_occluded` with early ray termination: the SDF (``sdf_at(sample indices)``) is queried
-    ``segment`` samples a ray at a time, front to back, and a ray stops being queried once its transmittance is
-    below ``eps``; samples behind that point cost nothing. Each segment also reads the next sample of its ray, so
+    """:func:`prune_occluded` with early ray termination: the SDF (``sdf_at(sample indices)``) is queried a segment
+    of samples a ray at a time, front to back (``segment`` samples, then twice as many each time, so a long ray
+    takes a few rounds), and a ray stops being queried once its transmittance is below ``eps``; samples behind that
+    point cost nothing. Each segment also reads the next sample of its ray, so
     the opacities are those of the one-pass estimate. Returns the keep mask and the SDF (NaN where not queried)."""
     n = t.shape[0]
     sdf = torch.full_like(t, float("nan"))
@@ -108,7 +109,8 @@ def prune_occluded_progressive(sdf_at: Callable[[Tensor], Tensor], t: Tensor, ra
     starts = torch.cumsum(counts, 0) - counts
     rank = torch.arange(n, device=t.device) - starts[ray_idx]
     log_t = torch.zeros(n_rays, dtype=torch.float64, device=t.device)
-    for k0 in range(0, int(counts.max()), segment):
+    k0, longest = 0, int(counts.max())
+    while k0 < longest:
         alive = log_t > math.log(eps)
         window = (rank >= k0) & (rank <= k0 + segment) & alive[ray_idx]
         idx = window.nonzero()[:, 0]
@@ -124,4 +126,5 @@ def prune_occluded_progressive(sdf_at: Callable[[Tensor], Tensor], t: Tensor, ra
         _, trans = packed_weights(alpha, r, n_rays)
         keep[idx] = trans * torch.exp(log_t[r]).to(trans.dtype) > eps
         log_t.index_add_(0, r, torch.log((1.0 - alpha).clamp_min(1e-10)).double())
+        k0, segment = k0 + segment, 2 * segment
     return keep, sdf

@@ -75,6 +75,10 @@ class GridBroadcaster(Protocol):
     def broadcast_module(self, module: nn.Module) -> None: ...
 
 
+REFINE_BUDGET = 4_000_000
+"""Most SDF queries :meth:`AniSDFModel.image_grid` spends on refining (a trained cpu-quick bunny: about 2M)."""
+
+
 class AniSDFModel(nn.Module):
     def __init__(self, cfg: Config, learn_background: bool = False, trained: Tensor | None = None,
                  camera_poses: Tensor | None = None, image_codes: bool = False) -> None:
@@ -231,10 +235,12 @@ class AniSDFModel(nn.Module):
     @torch.no_grad()
     def image_grid(self) -> OccupancyGrid:
         """The occupancy grid refined for images (``renderer.image_grid_resolution``), built once per model state
-        (step and grid update) and kept until either changes; the training grid when refinement is off."""
+        (step and grid update) and kept until either changes; the training grid when refinement is off or would
+        take more than ``REFINE_BUDGET`` SDF queries."""
         target = self.cfg.renderer.image_grid_resolution
         factor = -(-target // self.grid.resolution) if target > 0 else 1
-        if factor <= 1:
+        # a grid that is still mostly occupied (early training) gains little and would cost millions of queries
+        if factor <= 1 or int(self.grid.occupied.sum()) * factor**3 > REFINE_BUDGET:
             return self.grid
         key = (self.step_int, int(self.grid.n_updates), factor, float(self.variance()))
         if getattr(self, "_image_grid", (None, None))[0] != key:
