@@ -66,11 +66,14 @@ def test_corrected_rays_are_the_rays_of_the_corrected_camera():
 
 @pytest.mark.parametrize("fmt", ["nerf-synthetic", "neus", "llff", "colmap", "instant-ngp"])
 def test_switches_are_off_for_rendered_scenes_and_on_for_photos(tmp_path, fmt):
+    """auto follows the format; the default (off until measured to help) builds neither part."""
     write_test_scene(tmp_path / fmt, fmt)
     scene = load_scene(tmp_path / fmt)
     photos = fmt != "nerf-synthetic"
-    model = build_model(load_config("cpu-quick", TINY), scene, torch.device("cpu"))
+    model = build_model(load_config("cpu-quick", [*TINY, "cameras.refine=auto", "appearance.embedding=auto"]), scene, torch.device("cpu"))
     assert (model.cameras is not None, model.image_codes is not None) == (photos, photos)
+    default = build_model(load_config("cpu-quick", TINY), scene, torch.device("cpu"))
+    assert default.cameras is None and default.image_codes is None
     off = build_model(load_config("cpu-quick", [*TINY, "cameras.refine=off", "appearance.embedding=false"]), scene,
                       torch.device("cpu"))
     assert off.cameras is None and off.image_codes is None
@@ -101,14 +104,14 @@ def _state(tr: Trainer) -> dict[str, torch.Tensor]:
 
 
 def test_resume_is_exact_with_refinement_and_codes_and_the_poses_are_written_and_used(tmp_path, monkeypatch):
-    """A colmap capture (both switches on by default): 4 steps straight equal 2 + resume + 2, bit for bit;
+    """A colmap capture (both switches auto, so on): 4 steps straight equal 2 + resume + 2, bit for bit;
     refined_cameras.json holds the trained cameras in the dataset's frame, scene_for_run renders them from it, eval
     records the protocol."""
     from anisdf.tasks.evaluate import appearance, evaluate
 
     truth = write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
     scene = load_scene(tmp_path / "s")
-    cfg = load_config("cpu-quick", [*TINY, "cameras.start_step=1", "cameras.lr=1e-2"])
+    cfg = load_config("cpu-quick", [*TINY, "cameras.start_step=1", "cameras.lr=1e-2", "cameras.refine=auto", "appearance.embedding=auto"])
     straight = Trainer(cfg, scene, tmp_path / "a", torch.device("cpu"), progress=False)
     assert straight.model.cameras is not None and straight.model.image_codes is not None
     for _ in range(4):
@@ -155,9 +158,9 @@ def test_a_resumed_run_keeps_the_parts_its_checkpoint_has():
     the switches) turns an auto switch off, so the model it builds matches the checkpoint."""
     from anisdf.tasks.train import _settle_switches
 
-    cfg = load_config("cpu-quick")
+    cfg = load_config("cpu-quick", ["cameras.refine=auto", "appearance.embedding=auto"])
     _settle_switches(cfg, ["geometry.branches.0.grid.table"])
     assert (cfg.cameras.refine, cfg.appearance.embedding) == ("off", "off")
-    cfg = load_config("cpu-quick")
+    cfg = load_config("cpu-quick", ["cameras.refine=auto", "appearance.embedding=auto"])
     _settle_switches(cfg, ["cameras.delta", "image_codes.codes"])
     assert (cfg.cameras.refine, cfg.appearance.embedding) == ("auto", "auto")

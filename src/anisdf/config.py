@@ -112,10 +112,11 @@ class AppearanceConfig:
     ref_hidden: int = 128
     ref_layers: int = 2
     pe_frequencies: int = 6
-    embedding: Literal["auto", "on", "off"] = "auto"
+    embedding: Literal["auto", "on", "off"] = "off"
     """A learned code per training image that the radiance heads take as an extra input (NeRF-W's appearance
-    embedding), which absorbs what changes from photo to photo: auto exposure, white balance, lighting. auto: on for
-    real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes
+    embedding), which absorbs what changes from photo to photo: auto exposure, white balance, lighting. Off by default
+    until measured to help (with camera refinement, auto read 18.1 dB against 24.8 dB on dtu_scan65's test views in
+    10 cpu-quick minutes: benchmarks/RESULTS.md). auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes
     (nerf-synthetic / Blender format), whose images share one exposure. Views with no trained code (test views,
     orbits, exports) use the mean of the training images' codes."""
     embedding_dim: int = 16
@@ -124,9 +125,10 @@ class AppearanceConfig:
 
 @dataclass
 class CamerasConfig:
-    refine: Literal["auto", "on", "off"] = "auto"
+    refine: Literal["auto", "on", "off"] = "off"
     """Learn a small rigid correction (rotation + translation, an se(3) vector, zero at the start) of every training
-    camera together with the scene, for poses that structure-from-motion got slightly wrong. auto: on for real photos
+    camera together with the scene, for poses that structure-from-motion got slightly wrong. Off by default until
+    measured to help (see ``appearance.embedding``). auto: on for real photos
     (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes (nerf-synthetic / Blender
     format), whose cameras are exact. Test cameras are never corrected."""
     lr: float = 1e-3
