@@ -21,6 +21,9 @@ from anisdf.run_dir import RunDir
 from anisdf.tasks.loading import load_run, scene_for_run
 from anisdf.training.trainer import Trainer, build_model
 
+AUTO = ["cameras.refine=auto", "appearance.embedding=auto"]
+"""Both switches following the dataset's format (their default is off)."""
+
 
 def _hat(xi: np.ndarray) -> np.ndarray:
     w, v = xi[:3], xi[3:]
@@ -70,7 +73,7 @@ def test_switches_are_off_for_rendered_scenes_and_on_for_photos(tmp_path, fmt):
     write_test_scene(tmp_path / fmt, fmt)
     scene = load_scene(tmp_path / fmt)
     photos = fmt != "nerf-synthetic"
-    model = build_model(load_config("cpu-quick", [*TINY, "cameras.refine=auto", "appearance.embedding=auto"]), scene, torch.device("cpu"))
+    model = build_model(load_config("cpu-quick", [*TINY, *AUTO]), scene, torch.device("cpu"))
     assert (model.cameras is not None, model.image_codes is not None) == (photos, photos)
     default = build_model(load_config("cpu-quick", TINY), scene, torch.device("cpu"))
     assert default.cameras is None and default.image_codes is None
@@ -111,7 +114,7 @@ def test_resume_is_exact_with_refinement_and_codes_and_the_poses_are_written_and
 
     truth = write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
     scene = load_scene(tmp_path / "s")
-    cfg = load_config("cpu-quick", [*TINY, "cameras.start_step=1", "cameras.lr=1e-2", "cameras.refine=auto", "appearance.embedding=auto"])
+    cfg = load_config("cpu-quick", [*TINY, "cameras.start_step=1", "cameras.lr=1e-2", *AUTO])
     straight = Trainer(cfg, scene, tmp_path / "a", torch.device("cpu"), progress=False)
     assert straight.model.cameras is not None and straight.model.image_codes is not None
     for _ in range(4):
@@ -158,9 +161,9 @@ def test_a_resumed_run_keeps_the_parts_its_checkpoint_has():
     the switches) turns an auto switch off, so the model it builds matches the checkpoint."""
     from anisdf.tasks.train import _settle_switches
 
-    cfg = load_config("cpu-quick", ["cameras.refine=auto", "appearance.embedding=auto"])
+    cfg = load_config("cpu-quick", AUTO)
     _settle_switches(cfg, ["geometry.branches.0.grid.table"])
     assert (cfg.cameras.refine, cfg.appearance.embedding) == ("off", "off")
-    cfg = load_config("cpu-quick", ["cameras.refine=auto", "appearance.embedding=auto"])
+    cfg = load_config("cpu-quick", AUTO)
     _settle_switches(cfg, ["cameras.delta", "image_codes.codes"])
     assert (cfg.cameras.refine, cfg.appearance.embedding) == ("auto", "auto")

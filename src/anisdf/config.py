@@ -116,9 +116,9 @@ class AppearanceConfig:
     """A learned code per training image that the radiance heads take as an extra input (NeRF-W's appearance
     embedding), which absorbs what changes from photo to photo: auto exposure, white balance, lighting. Off by default
     until measured to help (with camera refinement, auto read 18.1 dB against 24.8 dB on dtu_scan65's test views in
-    10 cpu-quick minutes: benchmarks/RESULTS.md). auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes
-    (nerf-synthetic / Blender format), whose images share one exposure. Views with no trained code (test views,
-    orbits, exports) use the mean of the training images' codes."""
+    10 cpu-quick minutes: benchmarks/RESULTS.md). auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and
+    process-data scenes), off for rendered scenes (nerf-synthetic / Blender format), whose images share one exposure.
+    Views with no trained code (test views, orbits, exports) use the mean of the training images' codes."""
     embedding_dim: int = 16
     """Size of the per-image appearance code."""
 
