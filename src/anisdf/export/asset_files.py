@@ -40,18 +40,17 @@ def png_bytes(img: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def glb_bytes(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, diffuse_png: bytes,
-              extras: dict | None = None) -> bytes:
-    """A glb of one textured triangle mesh: POSITION, NORMAL, TEXCOORD_0, uint32 indices and the diffuse PNG as the
-    base colour of a PBR material (metallic 0, roughness 1) that also asks for ``KHR_materials_unlit`` (the colours
-    are baked: viewers that know the extension show them as they are)."""
+def mesh_buffers(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, images: list[bytes]
+                 ) -> tuple[bytes, list, list]:
+    """The binary chunk of a one-mesh glb and its buffer views and accessors: POSITION, NORMAL, TEXCOORD_0 and uint32
+    indices (views and accessors 0-3), then one view for each image (views 4, 5, ...), 4-byte aligned."""
     import pygltflib as g
 
     arrays = [np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(normals, np.float32),
               np.ascontiguousarray(uvs, np.float32), np.ascontiguousarray(faces, np.uint32).reshape(-1)]
     blob = b""
     views = []
-    for a in [*arrays, diffuse_png]:
+    for a in [*arrays, *images]:
         data = a if isinstance(a, bytes) else a.tobytes()
         views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data)))
         blob += data + b"\0" * (-len(data) % 4)
@@ -66,6 +65,17 @@ def glb_bytes(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces:
         g.Accessor(bufferView=2, componentType=g.FLOAT, count=len(pos), type=g.VEC2),
         g.Accessor(bufferView=3, componentType=g.UNSIGNED_INT, count=int(arrays[3].size), type=g.SCALAR),
     ]
+    return blob, views, accessors
+
+
+def glb_bytes(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, diffuse_png: bytes,
+              extras: dict | None = None) -> bytes:
+    """A glb of one textured triangle mesh: POSITION, NORMAL, TEXCOORD_0, uint32 indices and the diffuse PNG as the
+    base colour of a PBR material (metallic 0, roughness 1) that also asks for ``KHR_materials_unlit`` (the colours
+    are baked: viewers that know the extension show them as they are)."""
+    import pygltflib as g
+
+    blob, views, accessors = mesh_buffers(vertices, normals, uvs, faces, [diffuse_png])
     material = g.Material(
         pbrMetallicRoughness=g.PbrMetallicRoughness(baseColorTexture=g.TextureInfo(index=0), metallicFactor=0.0,
                                                     roughnessFactor=1.0),

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from anisdf.export.asset_files import png_bytes
+from anisdf.export.asset_files import mesh_buffers, png_bytes
 from anisdf.materials.asset import Fitted
 from anisdf.materials.fit import srgb
 
@@ -25,25 +25,7 @@ def pbr_glb_bytes(vertices: np.ndarray, normals: np.ndarray, uvs: np.ndarray, fa
     """A glb of one mesh with a metallic-roughness material: base colour and metallic-roughness textures."""
     import pygltflib as g
 
-    arrays = [np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(normals, np.float32),
-              np.ascontiguousarray(uvs, np.float32), np.ascontiguousarray(faces, np.uint32).reshape(-1)]
-    blob = b""
-    views = []
-    for a in [*arrays, base_png, mr_png]:
-        data = a if isinstance(a, bytes) else a.tobytes()
-        views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data)))
-        blob += data + b"\0" * (-len(data) % 4)
-    for i in range(3):
-        views[i].target = g.ARRAY_BUFFER
-    views[3].target = g.ELEMENT_ARRAY_BUFFER
-    pos = arrays[0]
-    accessors = [
-        g.Accessor(bufferView=0, componentType=g.FLOAT, count=len(pos), type=g.VEC3,
-                   min=pos.min(0).tolist(), max=pos.max(0).tolist()),
-        g.Accessor(bufferView=1, componentType=g.FLOAT, count=len(pos), type=g.VEC3),
-        g.Accessor(bufferView=2, componentType=g.FLOAT, count=len(pos), type=g.VEC2),
-        g.Accessor(bufferView=3, componentType=g.UNSIGNED_INT, count=int(arrays[3].size), type=g.SCALAR),
-    ]
+    blob, views, accessors = mesh_buffers(vertices, normals, uvs, faces, [base_png, mr_png])
     material = g.Material(name="anisdf-pbr", pbrMetallicRoughness=g.PbrMetallicRoughness(
         baseColorTexture=g.TextureInfo(index=0), metallicRoughnessTexture=g.TextureInfo(index=1),
         metallicFactor=1.0, roughnessFactor=1.0))
