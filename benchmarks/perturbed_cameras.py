@@ -2,7 +2,8 @@
 
     python benchmarks/perturbed_cameras.py /work/shared/data/dtu_scan65 [--work DIR] [--steps 1500]
 
-Writes a copy of the dataset (images and masks linked, ``cameras_sphere.npz`` rewritten) in which every camera is
+Writes a copy of the dataset (images and masks linked, ``cameras_sphere.npz`` rewritten) in which every training
+camera (the held-out test cameras keep their true pose: they score every run) is
 rotated by ``--rot-deg`` about a random axis through its centre and moved by ``--move`` times its distance from the
 ``scale_mat`` centre in a random direction (a fixed ``--seed``), then trains three cpu-quick runs of ``--steps``
 steps: the clean cameras, the perturbed ones as given (``cameras.refine=off``) and the perturbed ones refined
@@ -29,8 +30,10 @@ from anisdf.data.dataparsers.neus import decompose_projection, find_npz
 from anisdf.run_dir import RunDir
 
 
-def perturb(data: Path, out: Path, rot_deg: float, move: float, seed: int) -> None:
-    """``out``: ``data`` with every camera of its ``cameras_sphere.npz`` rotated and moved (see the module doc)."""
+def perturb(data: Path, out: Path, rot_deg: float, move: float, seed: int, which: set[int]) -> None:
+    """``out``: ``data`` with the cameras ``which`` of its ``cameras_sphere.npz`` rotated and moved (see the module
+    doc); the others (the held-out test views) keep their true pose, so that every run is scored by the same
+    cameras."""
     out.mkdir(parents=True, exist_ok=True)
     for name in ("image", "mask"):
         if (data / name).is_dir() and not (out / name).exists():
@@ -44,6 +47,9 @@ def perturb(data: Path, out: Path, rot_deg: float, move: float, seed: int) -> No
     i = 0
     while f"world_mat_{i}" in cams:
         world = cams[f"world_mat_{i}"].astype(np.float64)
+        if i not in which:
+            i += 1
+            continue
         K, c2w = decompose_projection(world)
         center = cams[f"scale_mat_{i}"][:3, 3]
         axis = rng.normal(size=3)
@@ -105,8 +111,9 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="perturbed_cameras_"))
     noisy = work / "data_perturbed"
-    perturb(a.data, noisy, a.rot_deg, a.move, a.seed)
-    clean_parsed, noisy_parsed = parse_dataset(a.data), parse_dataset(noisy)
+    clean_parsed = parse_dataset(a.data)
+    perturb(a.data, noisy, a.rot_deg, a.move, a.seed, set(clean_parsed.splits["train"]))
+    noisy_parsed = parse_dataset(noisy)
     clean = clean_parsed.c2w
     center = np.asarray(clean_parsed.to_world)[:3, 3]
     train_idx = list(clean_parsed.splits["train"])

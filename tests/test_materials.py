@@ -64,6 +64,20 @@ def test_light_rotation_turns_about_up_and_round_trips():
     assert torch.equal(env_mod.rotate(env, 360.0), env)
 
 
+def test_the_bundled_studio_light_is_a_dark_room_lit_by_its_key_light():
+    import math
+
+    env = env_mod.studio_light(32)
+    assert env.shape == (32, 64, 3) and bool((env > 0).all())
+    d = env_mod.texel_directions(32, 64).reshape(-1, 3)
+    brightest = d[env.sum(-1).reshape(-1).argmax()]
+    az, el, _, _ = env_mod.STUDIO[0]
+    key = torch.tensor([math.cos(math.radians(el)) * math.cos(math.radians(az)),
+                        math.cos(math.radians(el)) * math.sin(math.radians(az)), math.sin(math.radians(el))])
+    assert float(brightest @ key) > math.cos(math.radians(6))
+    assert float(env.median()) < 0.1  # a dark room
+
+
 @pytest.mark.parametrize("suffix", [".hdr", ".npy", ".exr"])
 def test_light_files_round_trip(tmp_path, suffix):
     if suffix == ".exr":
@@ -182,6 +196,9 @@ def test_relight_eval_relight_and_export_pbr(fitted_run, toy_scene, tmp_path):
     out = tmp_path / "relit"
     assert main(["relight", str(fitted_run), "--env", str(light), "--rotate", "45", "--out", str(out),
                  "--cameras", str(toy_scene / "transforms_test.json"), "--no-progress"]) == 0
+    assert main(["relight", str(fitted_run), "--env", "studio", "--out", str(tmp_path / "studio"), "--max-views", "1",
+                 "--cameras", str(toy_scene / "transforms_test.json"), "--no-progress"]) == 0
+    assert json.loads((tmp_path / "studio" / "relight.json").read_text())["env"] == "studio"
     views = sorted(out.glob("*.png"))
     assert len(views) == 2 and Image.open(views[0]).mode == "RGBA"
     assert np.asarray(Image.open(views[0]))[..., 3].max() == 255  # the object is in the picture
@@ -203,6 +220,8 @@ def test_relight_eval_relight_and_export_pbr(fitted_run, toy_scene, tmp_path):
     assert main(["export", str(fitted_run), "--pbr", "--out", str(asset), "--faces", "2000", "--texture", "64",
                  "--no-progress"]) == 0
     assert (asset / "light.hdr").is_file()
+    page = (asset / "index.html").read_text()
+    assert "__ANISDF" not in page and '"name":"studio"' in page and '"name":"estimated"' in page
     geom = next(iter(trimesh.load(asset / "model.glb").geometry.values()))
     assert geom.visual.material.baseColorTexture.size == (64, 64)
     assert geom.visual.material.metallicRoughnessTexture.size == (64, 64)

@@ -68,11 +68,11 @@ class BakedAsset:
         if manifest.get("format") != fmt.FORMAT:
             raise AnisdfError(f"{man_path}: not an {fmt.FORMAT} manifest")
         pos, nrm, uv, faces, png = read_glb(folder / fmt.GLB)
-        diffuse = _png_rgb(png, folder / fmt.GLB)
+        diffuse = png_rgb(png, folder / fmt.GLB)
         lobes, amps = [], []
         for i in range(k):
-            lobes.append(_png_rgb((folder / fmt.lobe_png(i)), folder / fmt.lobe_png(i)))
-            amps.append(_png_rgb((folder / fmt.rgb_png(i)), folder / fmt.rgb_png(i)))
+            lobes.append(png_rgb((folder / fmt.lobe_png(i)), folder / fmt.lobe_png(i)))
+            amps.append(png_rgb((folder / fmt.rgb_png(i)), folder / fmt.rgb_png(i)))
         h, w = lobes[0].shape[:2] if k else (1, 1)
         for path, arr in [(fmt.lobe_png(i), a) for i, a in enumerate(lobes)] + \
                          [(fmt.rgb_png(i), a) for i, a in enumerate(amps)]:
@@ -85,7 +85,7 @@ class BakedAsset:
                    (srange[0], srange[1]), manifest)
 
 
-def _png_rgb(src: bytes | Path, name: Path) -> np.ndarray:
+def png_rgb(src: bytes | Path, name: Path) -> np.ndarray:
     import io
 
     try:
@@ -98,9 +98,11 @@ def _png_rgb(src: bytes | Path, name: Path) -> np.ndarray:
     return np.asarray(img, dtype=np.uint8).copy()
 
 
-def read_glb(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bytes]:
-    """Positions, normals, UVs [V, *] float32, triangles [F, 3] and the base colour PNG of the glb's first
-    primitive (tightly packed buffer views, as :func:`anisdf.export.bake.write_glb` writes them)."""
+def read_glb(path: Path, texture: str = "baseColorTexture"
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bytes]:
+    """Positions, normals, UVs [V, *] float32, triangles [F, 3] and the PNG of the material's ``texture`` (a glTF
+    ``pbrMetallicRoughness`` slot) of the glb's first primitive (tightly packed buffer views, as
+    :func:`anisdf.export.asset_files.mesh_buffers` writes them)."""
     from pygltflib import GLTF2
 
     if not path.is_file():
@@ -124,7 +126,7 @@ def read_glb(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
         uv = accessor(prim.attributes.TEXCOORD_0).astype(np.float32)
         faces = accessor(prim.indices).reshape(-1, 3).astype(np.int64)
         mat = g.materials[prim.material]
-        image = g.images[g.textures[mat.pbrMetallicRoughness.baseColorTexture.index].source]
+        image = g.images[g.textures[getattr(mat.pbrMetallicRoughness, texture).index].source]
         view = g.bufferViews[image.bufferView]
         png = bytes(blob[view.byteOffset or 0:(view.byteOffset or 0) + view.byteLength])
     except (AttributeError, IndexError, KeyError, TypeError, ValueError, OSError) as e:
@@ -249,7 +251,7 @@ def _ray_triangle(origin: Tensor, d: Tensor, tri: Tensor, eps: float = 1e-7) -> 
     return t, b1, b2, hit
 
 
-def _bilinear_taps(uv: Tensor, h: int, w: int) -> list[tuple[Tensor, Tensor, Tensor]]:
+def bilinear_taps(uv: Tensor, h: int, w: int) -> list[tuple[Tensor, Tensor, Tensor]]:
     """The 4 texels (row, column) around each UV of an ``h`` x ``w`` texture with their bilinear weights, in the
     shader's order (clamped to the edge)."""
     size = torch.tensor([w, h], dtype=torch.float32)
@@ -278,12 +280,12 @@ def shade(asset: BakedAsset, face: Tensor, bary: Tensor, view_dirs: Tensor, spec
     uv = (b * asset.uvs[tri]).sum(1)
     r = view_dirs - 2.0 * (view_dirs * n).sum(-1, keepdim=True) * n
     out = torch.zeros(len(face), 3)
-    for qy, qx, wt in _bilinear_taps(uv, *asset.diffuse.shape[:2]):
+    for qy, qx, wt in bilinear_taps(uv, *asset.diffuse.shape[:2]):
         out = out + wt[:, None] * (asset.diffuse[qy, qx].float() / 255.0)
     if specular and asset.k:
         log_lo = np.float32(np.log(asset.sharpness_range[0]))
         log_span = np.float32(np.log(asset.sharpness_range[1] / asset.sharpness_range[0]))
-        for qy, qx, wt in _bilinear_taps(uv, *asset.lobe.shape[1:3]):
+        for qy, qx, wt in bilinear_taps(uv, *asset.lobe.shape[1:3]):
             texel = torch.zeros(len(face), 3)
             for k in range(asset.k):
                 lobe = asset.lobe[k, qy, qx].float() / 255.0

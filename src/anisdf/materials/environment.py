@@ -99,6 +99,25 @@ def downsample(env: Tensor, h: int) -> Tensor:
     return num / wt.reshape(h, fy, 2 * h, fx, 1).sum((1, 3))
 
 
+STUDIO = (  # (azimuth deg, elevation deg, sharpness, linear RGB): a key, a rim and a soft fill from above
+    (40.0, 35.0, 60.0, (9.0, 8.4, 7.6)),
+    (215.0, 20.0, 90.0, (4.0, 4.6, 5.6)),
+    (0.0, 90.0, 4.0, (0.35, 0.35, 0.38)),
+)
+
+
+def studio_light(rows: int = 64, ambient: float = 0.02) -> Tensor:
+    """The bundled studio light [rows, 2 rows, 3]: a dark room (``ambient``) with the spherical-Gaussian lamps of
+    :data:`STUDIO` (``c exp(s (d.mu - 1))``), made here so that nothing is downloaded or shipped as a file."""
+    d = texel_directions(rows, 2 * rows)
+    env = torch.full((rows, 2 * rows, 3), ambient)
+    for az, el, sharp, rgb in STUDIO:
+        a, e = math.radians(az), math.radians(el)
+        mu = torch.tensor([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+        env = env + torch.exp(sharp * ((d @ mu) - 1.0))[..., None] * torch.tensor(rgb)
+    return env
+
+
 # ------------------------------------------------------------------------------------------------ prefiltering
 def irradiance_matrix(h_out: int, h_in: int, device: torch.device | str = "cpu") -> Tensor:
     """[h_out * 2 h_out, h_in * 2 h_in]: row k maps a map's texels to ``E(n_k)`` at output texel k's direction."""

@@ -146,27 +146,39 @@ def export(run: Path, out: Path, options: ExportOptions | None = None, **changes
 
 
 def _export_pbr(rd: RunDir, out: Path, o: ExportOptions) -> dict[str, Any]:
-    """``--pbr``: the fitted material as glTF PBR textures (:mod:`anisdf.materials.pbr_asset`), the light beside."""
+    """``--pbr``: the fitted material as glTF PBR textures (:mod:`anisdf.materials.pbr_asset`), the light beside, and
+    the page that draws them under the fitted light, the bundled studio light or the user's own
+    (:mod:`anisdf.materials.pbr_viewer`)."""
     import tempfile
     import time
 
     from anisdf import __version__
+    from anisdf.config import config_from_dict
     from anisdf.export.asset_files import AssetFolder
     from anisdf.materials import pbr_asset
     from anisdf.materials.asset import load_fitted
-    from anisdf.materials.environment import write_env
+    from anisdf.materials.environment import studio_light, write_env
+    from anisdf.materials.pbr_viewer import PAGE, pbr_page_html
+    from anisdf.training.checkpoint import load_checkpoint
 
     start = time.perf_counter()
     fitted = load_fitted(rd.root)
+    ck = load_checkpoint(rd.checkpoint)
+    camera, up = _export_camera(rd.root, config_from_dict(ck["config"]), ck)
     glb, stats = pbr_asset.bake_pbr(fitted, o.faces, o.texture)
     with tempfile.TemporaryDirectory() as tmp:
         light = write_env(Path(tmp) / pbr_asset.LIGHT, fitted.light.numpy()).read_bytes()
     manifest: dict[str, Any] = {"format": "anisdf-pbr", "anisdf": __version__, "run": str(rd.root.resolve()),
-                                "frame": "dataset", "light_frame": "dataset, z up (equirectangular)", **stats}
+                                "frame": "dataset", "light_frame": "dataset, z up (equirectangular)",
+                                "supersample": o.supersample, "pixel_filter": o.pixel_filter, "up": up,
+                                "camera": camera, **stats}
+    page = pbr_page_html(manifest, glb, {"estimated": fitted.light.numpy(), "studio": studio_light().numpy()})
     with AssetFolder(out, stale=()) as folder:
-        sizes = {pbr_asset.GLB: folder.write(pbr_asset.GLB, glb), pbr_asset.LIGHT: folder.write(pbr_asset.LIGHT, light)}
+        sizes = {pbr_asset.GLB: folder.write(pbr_asset.GLB, glb), pbr_asset.LIGHT: folder.write(pbr_asset.LIGHT, light),
+                 PAGE: folder.write(PAGE, page.encode("utf-8"))}
         manifest.update(files=sizes, total_bytes=int(sum(sizes.values())),
                         seconds=round(time.perf_counter() - start, 2))
         folder.write(pbr_asset.MANIFEST, (json.dumps(manifest, indent=2) + "\n").encode("utf-8"))
-    log.info("export --pbr: %d faces, %d px textures -> %s", stats["faces"], o.texture, out)
+    log.info("export --pbr: %d faces, %d px textures -> %s (open %s in a browser)", stats["faces"], o.texture, out,
+             out / PAGE)
     return manifest

@@ -28,7 +28,8 @@ class RelightOptions:
     """``anisdf relight``'s options (:func:`relight`)."""
 
     env: Path = option(dataclasses.MISSING, "the light: equirectangular .hdr / .exr / .npy in the dataset's frame, "
-                                            "z up", Path, metavar="ENV")
+                                            "z up; `studio`: the bundled studio light (export --pbr's page has it "
+                                            "too)", Path, metavar="ENV")
     rotate: float = option(0.0, "turn the light by this many degrees about the up axis (+z)", float)
     cameras: Path | None = option(None, "transforms.json of the cameras (default: the run's test views)", Path)
     size: int = option(0, "image width of --cameras' views in pixels (0: their images' size, else 800)",
@@ -88,14 +89,14 @@ def relight(run: Path, out: Path, options: RelightOptions | None = None, **chang
     import torch
 
     from anisdf.materials.asset import load_fitted
-    from anisdf.materials.environment import read_env, rotate
+    from anisdf.materials.environment import read_env, rotate, studio_light
     from anisdf.materials.render import prepare_light, render_view
     from anisdf.utils.atomic import atomic_path, write_text_atomic
 
     o = dataclasses.replace(options, **changes) if options is not None else RelightOptions(**changes)
     start = time.monotonic()
     fitted = load_fitted(run)
-    env = torch.from_numpy(read_env(o.env))
+    env = studio_light() if str(o.env) == "studio" and not Path(o.env).exists() else torch.from_numpy(read_env(o.env))
     if o.rotate:
         env = rotate(env, o.rotate)
     light = prepare_light(env)
