@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_training import TINY
 
 from anisdf.cli import main
 from anisdf.export import baked_format as fmt
@@ -203,18 +202,7 @@ def test_reference_renderer_casts_and_shades_a_sphere():
 
 
 # ------------------------------------------------------------------------------------------------ end to end
-EXPORT_ARGS = ["--faces", "4k", "--texture", "128", "--specular-texture", "64", "--directions", "32",
-               "--resolution", "64", "--no-progress"]
-
-
-@pytest.fixture(scope="module")
-def exported(toy_scene, tmp_path_factory):
-    root = tmp_path_factory.mktemp("export")
-    run = root / "run"
-    assert main(["train", str(toy_scene), "--out", str(run), "--preset", "cpu-quick", "--max-steps", "60",
-                 "--no-progress", *TINY]) == 0
-    assert main(["export", str(run), "--out", str(root / "k2"), "--lobes", "2", *EXPORT_ARGS]) == 0
-    return run, root / "k2"
+# ``exported`` (conftest.py): a tiny trained run and its export with two lobes.
 
 
 def test_export_writes_every_file_and_reports_sizes(exported, capsys):

@@ -157,18 +157,7 @@ TINY_FIT = ["--minutes", "2", "--steps", "15", "--resolution", "32", "--faces", 
             "--grid", "4", "--batch", "512", "--no-progress"]
 
 
-@pytest.fixture(scope="module")
-def fitted_run(toy_scene, tmp_path_factory):
-    """A tiny trained run of the toy scene with a material fit."""
-    from test_training import TINY
-
-    from anisdf.cli import main
-
-    run = tmp_path_factory.mktemp("materials") / "run"
-    assert main(["train", str(toy_scene), "--out", str(run), "--preset", "cpu-quick", "--max-steps", "60",
-                 "--no-progress", *TINY]) == 0
-    assert main(["materials", str(run), *TINY_FIT]) == 0
-    return run
+# ``fitted_run`` (conftest.py): a tiny trained run with a material fit of TINY_FIT.
 
 
 def test_materials_writes_a_resumable_fit(fitted_run):
