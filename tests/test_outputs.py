@@ -212,3 +212,24 @@ def test_train_viewer_serves_the_run_while_it_trains(toy_scene, tmp_path, capsys
     with socket.socket() as s:  # closed when training ended (a listener would still hold the port)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind(("127.0.0.1", port))
+
+
+def test_atomic_outputs_get_the_mode_an_ordinary_write_gets(tmp_path):
+    """mkstemp's private 0600 must not leak into outputs: a page or a mesh is for web servers and other users."""
+    import os
+
+    from anisdf.export.asset_files import AssetFolder
+    from anisdf.utils.atomic import write_text_atomic
+
+    mask = os.umask(0o022)
+    try:
+        plain = tmp_path / "plain.txt"
+        plain.write_text("x")
+        write_text_atomic(tmp_path / "atomic.txt", "x")
+        with AssetFolder(tmp_path / "asset") as folder:
+            folder.write("index.html", b"<html></html>")
+    finally:
+        os.umask(mask)
+    files = (plain, tmp_path / "atomic.txt", tmp_path / "asset" / "index.html")
+    modes = {p.name: p.stat().st_mode & 0o777 for p in files}
+    assert set(modes.values()) == {0o644}, modes

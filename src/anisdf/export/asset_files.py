@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import numpy as np
 from PIL import Image
 
 from anisdf.export import baked_format as fmt
+from anisdf.utils.atomic import temp_file
 
 
 @dataclass
@@ -114,12 +114,10 @@ class AssetFolder:
     def write(self, name: str, data: bytes) -> int:
         """Stage ``data`` as file ``name``; returns its size in bytes."""
         path = self.folder / name
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=self.folder)
-        os.close(fd)
         old = self._staged.pop(name, None)
         if old is not None:
             old.unlink(missing_ok=True)
-        self._staged[name] = Path(tmp_name)
+        self._staged[name] = temp_file(path)
         self._staged[name].write_bytes(data)
         return len(data)
 
