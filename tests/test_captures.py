@@ -67,6 +67,46 @@ def test_corrected_rays_are_the_rays_of_the_corrected_camera():
     np.testing.assert_allclose(new[1], scene_c2w[1], atol=1e-6)
 
 
+def _ring_cameras(n: int = 6) -> torch.Tensor:
+    """[n,3,4] cameras on a tilted ring at distance 3, looking at the origin."""
+    poses = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        eye = np.array([3 * np.cos(a), 3 * np.sin(a), 1.0 + 0.3 * np.sin(3 * a)])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        poses.append(np.concatenate([np.stack([x, np.cross(z, x), z], 1), eye[:, None]], 1))
+    return torch.tensor(np.stack(poses), dtype=torch.float32)
+
+
+def test_the_anchor_takes_out_the_motion_common_to_all_cameras_and_keeps_the_rest():
+    """Corrections that only move the whole rig (a gauge: no training photo changes) vanish when anchored; one
+    camera's own correction stays (less its share of the common motion)."""
+    poses = _ring_cameras()
+    rot, centre = poses[:, :, :3], poses[:, :, 3]
+    w, v = torch.tensor([0.01, -0.02, 0.015]), torch.tensor([0.03, 0.01, -0.02])
+    common = torch.cat([(rot.transpose(1, 2) @ w)[..., None].squeeze(-1).expand(6, 3),
+                        (rot.transpose(1, 2) @ (torch.linalg.cross(w.expand(6, 3), centre) + v)[..., None])[..., 0]], 1)
+    trained = torch.tensor([True] * 5 + [False])  # the last one is a test camera
+    for anchor, expect_small in ((True, True), (False, False)):
+        ref = CameraRefinement(poses, trained, anchor=anchor)
+        with torch.no_grad():
+            ref.delta[:] = common
+            d_rot, d_t = ref.corrections()
+        angle = torch.arccos(((d_rot.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1))
+        size = float(angle[:5].max() + d_t[:5].norm(dim=-1).max())
+        assert (size < 2e-3) == expect_small, (anchor, size)
+        assert float(angle[5]) == 0.0 and float(d_t[5].norm()) == 0.0  # test cameras are never corrected
+    own = torch.zeros(6, 6)
+    own[2] = torch.tensor([0.0, 0.02, 0.0, 0.05, 0.0, 0.0])
+    ref = CameraRefinement(poses, trained)
+    with torch.no_grad():
+        ref.delta[:] = own
+        d_rot, d_t = ref.corrections()
+    assert float(d_t[2].norm()) > 0.6 * 0.05 and float(torch.arccos((d_rot[2].trace() - 1) / 2)) > 0.6 * 0.02
+
+
 @pytest.mark.parametrize("fmt", ["nerf-synthetic", "neus", "llff", "colmap", "instant-ngp"])
 def test_switches_are_off_for_rendered_scenes_and_on_for_photos(tmp_path, fmt):
     """auto follows the format; the default (off until measured to help) builds neither part."""

@@ -137,6 +137,9 @@ class CamerasConfig:
     """The corrections are frozen at zero until this schedule step, while the scene takes a first shape."""
     reg: float = 1e-2
     """Weight of the penalty ``mean over training cameras of |xi|^2`` that keeps the corrections small."""
+    anchor: bool = True
+    """Take the rigid motion common to all the corrections out of them: moving every camera and the scene together
+    changes no training photo but moves the scene away from the held-out cameras (models/per_image.py)."""
 
 
 @dataclass

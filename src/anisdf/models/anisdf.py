@@ -99,8 +99,8 @@ class AniSDFModel(nn.Module):
             self.background = (BackgroundNeRF(r.radius, r.background_samples,
                                               backend=cfg.geometry.encoding_backend)
                                if r.background_model == "nerf" else EnvironmentBackground())
-        self.cameras = CameraRefinement(camera_poses, trained) if camera_poses is not None and trained is not None \
-            else None
+        self.cameras = (CameraRefinement(camera_poses, trained, cfg.cameras.anchor)
+                        if camera_poses is not None and trained is not None else None)
         self.image_codes = ImageCodes(trained.shape[0], code_dim, trained) if code_dim else None
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         # the step as a Python int, which schedules read without waiting for the GPU (the buffer is for checkpoints)
