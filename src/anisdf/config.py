@@ -166,6 +166,17 @@ class RendererConfig:
     environment (a colour per direction)."""
     background_samples: int = 32
     """Samples per ray of the background NeRF, uniform in disparity."""
+    background_levels: int = 12
+    """Hash-grid levels of the background NeRF (the release: 16)."""
+    background_log2_hashmap_size: int = 17
+    """log2 of the background NeRF's hash table size per level (the release: 22)."""
+    background_hidden: int = 64
+    """Width of the background NeRF's density and colour heads."""
+    background_layers: int = 1
+    """Hidden layers of each background head (the release: 2)."""
+    background_grid_resolution: int = 0
+    """Cells a side of the background NeRF's occupancy grid over the contracted ball (0: none; the release's
+    nerfacc grid: 128). With it, the heads run only on samples in cells where density was seen."""
     early_stop_eps: float = 1e-3
     """Samples whose transmittance (estimated by a cheap SDF-only pass) is below this are dropped; 0 = off."""
     color_weight_eps: float = 1e-4

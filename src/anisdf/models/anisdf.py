@@ -74,6 +74,8 @@ class GridBroadcaster(Protocol):
 
     def broadcast_module(self, module: nn.Module) -> None: ...
 
+    def broadcast_tensors(self, tensors: list[Tensor]) -> None: ...
+
 
 REFINE_BUDGET = 4_000_000
 """Most SDF queries :meth:`AniSDFModel.image_grid` spends on refining (a trained cpu-quick bunny: about 2M)."""
@@ -96,7 +98,10 @@ class AniSDFModel(nn.Module):
         # opaque photos without masks: what lies beyond the sphere is learned too
         self.background: nn.Module | None = None
         if learn_background:
-            self.background = (BackgroundNeRF(r.radius, r.background_samples,
+            self.background = (BackgroundNeRF(r.radius, r.background_samples, n_levels=r.background_levels,
+                                              log2_hashmap_size=r.background_log2_hashmap_size,
+                                              hidden=r.background_hidden, layers=r.background_layers,
+                                              grid_resolution=r.background_grid_resolution,
                                               backend=cfg.geometry.encoding_backend)
                                if r.background_model == "nerf" else EnvironmentBackground())
         self.cameras = (CameraRefinement(camera_poses, trained, cfg.cameras.anchor)
@@ -155,10 +160,16 @@ class AniSDFModel(nn.Module):
     def update_grid(self, generator: torch.Generator, full: bool = False, job: GridBroadcaster | None = None) -> None:
         """Re-evaluate the occupancy grid; in a data-parallel ``job`` rank 0 does it (drawing from the shared
         generator) and sends the grid to every rank, so float noise between devices cannot make the grids differ."""
+        bg = self.background if isinstance(self.background, BackgroundNeRF) and self.background.grid_resolution \
+            else None
         if job is None or job.is_main:
             self.grid.update(self.geometry.sdf, float(self.variance()), generator, full=full)
+            if bg is not None:
+                bg.update_grid(generator, full=full)
         if job is not None:
             job.broadcast_module(self.grid)
+            if bg is not None:
+                job.broadcast_tensors([bg.density_ema, bg.occupied])
 
     @contextlib.contextmanager
     def cached_weights(self) -> Iterator[None]:

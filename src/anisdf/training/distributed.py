@@ -90,7 +90,11 @@ class Dist:
 
     def broadcast_module(self, module: torch.nn.Module) -> None:
         """Rank 0's parameters and buffers on every rank (after building the model)."""
-        for t in [*module.parameters(), *module.buffers()]:
+        self.broadcast_tensors([*module.parameters(), *module.buffers()])
+
+    def broadcast_tensors(self, tensors: list[torch.Tensor]) -> None:
+        """Rank 0's values of ``tensors`` on every rank, in place."""
+        for t in tensors:
             if t.dtype == torch.bool:  # not every backend sends bool tensors
                 u = t.data.to(torch.uint8)
                 td.broadcast(u, src=0)
