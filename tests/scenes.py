@@ -67,8 +67,12 @@ class SceneTruth:
         return self.c2w[i, :3, 3], d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """OpenCV camera-to-world (x right, y down, z forward) at ``eye`` looking at ``target``."""
+def look_at(eye: np.ndarray, target: np.ndarray | None = None, up: np.ndarray | None = None) -> np.ndarray:
+    """OpenCV camera-to-world (x right, y down, z forward) at ``eye`` looking at ``target`` (the origin), ``up``
+    (+z) pointing up the image."""
+    eye = np.asarray(eye, dtype=np.float64)
+    target = np.zeros(3) if target is None else np.asarray(target, dtype=np.float64)
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
     z = target - eye
     z = z / np.linalg.norm(z)
     x = np.cross(z, up)  # right = forward x up

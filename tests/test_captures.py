@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from scenes import write_test_scene
+from scenes import look_at, write_test_scene
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 from test_training import TINY
@@ -72,11 +72,7 @@ def _ring_cameras(n: int = 6) -> torch.Tensor:
     poses = []
     for k in range(n):
         a = 2 * np.pi * k / n
-        eye = np.array([3 * np.cos(a), 3 * np.sin(a), 1.0 + 0.3 * np.sin(3 * a)])
-        z = -eye / np.linalg.norm(eye)
-        x = np.cross(z, [0.0, 0.0, 1.0])
-        x /= np.linalg.norm(x)
-        poses.append(np.concatenate([np.stack([x, np.cross(z, x), z], 1), eye[:, None]], 1))
+        poses.append(look_at([3 * np.cos(a), 3 * np.sin(a), 1.0 + 0.3 * np.sin(3 * a)])[:3])
     return torch.tensor(np.stack(poses), dtype=torch.float32)
 
 

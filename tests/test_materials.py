@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from scenes import look_at
 
 from anisdf.materials import environment as env_mod
 from anisdf.materials.brdf import brdf
@@ -124,14 +125,8 @@ def _sphere_scene(n_views: int = 6, size: int = 24):
     views = []
     for k in range(n_views):
         a = 2 * math.pi * k / n_views
-        eye = np.array([3.5 * math.cos(a), 3.5 * math.sin(a), 1.0])
-        z = -eye / np.linalg.norm(eye)
-        x = np.cross(z, [0.0, 0.0, 1.0])
-        x /= np.linalg.norm(x)
-        c2w = np.eye(4)
-        c2w[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-        c2w[:3, 3] = eye
-        cam = PinholeCamera(c2w, size * 1.2, size * 1.2, size / 2, size / 2, size, size)
+        eye = [3.5 * math.cos(a), 3.5 * math.sin(a), 1.0]
+        cam = PinholeCamera(look_at(eye), size * 1.2, size * 1.2, size / 2, size / 2, size, size)
         img = render_view(surface, truth, pre, cam, supersample=1, pixel_filter=0.0)
         views.append((cam, (img[..., :3] * 255 + 0.5).astype(np.uint8), img[..., 3]))
     return surface, views, light

@@ -13,6 +13,8 @@ import torch
 pytest.importorskip("xatlas", reason="export --pbr needs the export extra (pip install 'anisdf[export]')")
 pytest.importorskip("pygltflib", reason="export --pbr needs the export extra")
 
+from scenes import look_at  # noqa: E402
+
 from anisdf.export.reference_renderer import PinholeCamera  # noqa: E402
 from anisdf.materials import environment as env_mod  # noqa: E402
 from anisdf.materials.asset import Fitted  # noqa: E402
@@ -50,14 +52,7 @@ def asset(tmp_path_factory):
         material.grid[0, 1] = g[None, :, None]
     folder = tmp_path_factory.mktemp("pbr")
     glb, stats = bake_pbr(Fitted(surface, material.eval(), sky()), faces=3000, texture=128)
-    eye = np.array([2.2, -1.4, 1.2])
-    z = -eye / np.linalg.norm(eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    c2w[:3, 3] = eye
-    cam = PinholeCamera(c2w, 110.0, 110.0, 48.0, 48.0, 96, 96)
+    cam = PinholeCamera(look_at([2.2, -1.4, 1.2]), 110.0, 110.0, 48.0, 48.0, 96, 96)
     manifest = {"format": "anisdf-pbr", "supersample": 2, "pixel_filter": 0.6, "camera": cam.to_json(),
                 "up": [0.0, 0.0, 1.0], **stats}
     (folder / GLB).write_bytes(glb)

@@ -332,14 +332,24 @@ def render(asset: BakedAsset, cam: PinholeCamera, background: tuple[float, float
     if s < 1:
         raise AnisdfError(f"supersample must be a positive integer, got {supersample}")
     sigma = float(asset.manifest.get("pixel_filter", 0.0) if pixel_filter is None else pixel_filter)
+    return render_hits(asset, cam, lambda face, bary, dirs: shade(asset, face, bary, dirs, specular=specular), s,
+                       sigma, background)
+
+
+def render_hits(mesh: Any, cam: PinholeCamera, shade_hits: Any, supersample: int, sigma: float,
+                background: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """What a page draws of ``mesh`` (``positions``, ``faces``) from ``cam``: rays through the centres of an
+    s-times finer pixel grid, the hits coloured by ``shade_hits(face, barycentrics, directions)``, the others
+    ``background``, filtered into pixels by :func:`resolve`. RGB [H, W, 3] and coverage [H, W]."""
+    s = int(supersample)
     fine = PinholeCamera(cam.c2w, cam.fx * s, cam.fy * s, cam.cx * s, cam.cy * s, cam.width * s, cam.height * s,
                          cam.distortion)
-    face, _, bary = cast(asset, fine)
+    face, _, bary = cast(mesh, fine)
     _, dirs = pixel_rays(fine)
     rgb = torch.as_tensor(background, dtype=torch.float32).expand(face.shape[0], 3).clone()
     hit = face >= 0
     if hit.any():
-        rgb[hit] = shade(asset, face[hit], bary[hit], dirs[hit], specular=specular)
+        rgb[hit] = shade_hits(face[hit], bary[hit], dirs[hit])
     samples = torch.cat([rgb, hit.float()[:, None]], -1).reshape(cam.height * s, cam.width * s, 4)
     out = resolve(samples, s, sigma)
     return out[..., :3].numpy(), out[..., 3].numpy()

@@ -23,8 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from anisdf.errors import AnisdfError
-from anisdf.export.reference_renderer import PinholeCamera, bilinear_taps, cast, pixel_rays, png_rgb, read_glb
-from anisdf.export.reference_renderer import resolve as resolve_samples
+from anisdf.export.reference_renderer import PinholeCamera, bilinear_taps, png_rgb, read_glb, render_hits
 from anisdf.export.web_page import b64, fill_template
 from anisdf.materials.brdf import dfg_table
 from anisdf.materials.environment import Prefiltered
@@ -105,18 +104,8 @@ def render_asset(asset: PbrAsset, light: Prefiltered, cam: PinholeCamera, rotate
                  background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """What the page draws from ``cam``: sRGB colour [H, W, 3] in [0, 1] over ``background`` (sRGB), and the
     fraction of each pixel the mesh covers."""
-    s = int(supersample)
-    fine = PinholeCamera(cam.c2w, cam.fx * s, cam.fy * s, cam.cx * s, cam.cy * s, cam.width * s, cam.height * s,
-                         cam.distortion)
-    face, _, bary = cast(asset, fine)
-    _, dirs = pixel_rays(fine)
-    rgb = torch.as_tensor(background, dtype=torch.float32).expand(face.shape[0], 3).clone()
-    hit = face >= 0
-    if hit.any():
-        rgb[hit] = shade_asset(asset, light, face[hit], bary[hit], dirs[hit], rotate)
-    samples = torch.cat([rgb, hit.float()[:, None]], -1).reshape(fine.height, fine.width, 4)
-    out = resolve_samples(samples, s, pixel_filter)
-    return out[..., :3].numpy(), out[..., 3].numpy()
+    return render_hits(asset, cam, lambda face, bary, dirs: shade_asset(asset, light, face, bary, dirs, rotate),
+                       supersample, pixel_filter, background)
 
 
 def pbr_page_html(manifest: dict[str, Any], glb: bytes, lights: dict[str, np.ndarray]) -> str:
