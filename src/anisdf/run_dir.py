@@ -117,6 +117,11 @@ class RunDir:
         return self.materials / "surface.ply"
 
     @property
+    def materials_visibility(self) -> Path:
+        """The surface's vertex visibility of the light's directions (``anisdf materials --shadows``)."""
+        return self.materials / "visibility.pt"
+
+    @property
     def materials_checkpoint(self) -> Path:
         """The material and light fit (atomic; a later ``anisdf materials`` continues from it)."""
         return self.materials / "fit.pt"

@@ -21,6 +21,9 @@ class Fitted:
     surface: Surface
     material: MaterialGrid
     light: Tensor
+    visibility: Tensor | None = None
+    """[V, D] bool: which of the light's ``directions`` each vertex sees (``anisdf materials --shadows``)."""
+    directions: Tensor | None = None
 
     @torch.no_grad()
     def vertex_material(self) -> tuple[Tensor, Tensor, Tensor]:
@@ -56,7 +59,11 @@ def load_fitted(run) -> Fitted:
     light.load_state_dict(state["light"])
     with torch.no_grad():
         env = light().detach()
-    return Fitted(surface, material.eval(), env)
+    vis = load_checkpoint(rd.materials_visibility) if rd.materials_visibility.is_file() else None
+    if vis is not None and vis["visibility"].shape[0] != len(surface.positions):
+        vis = None  # made for another surface
+    return Fitted(surface, material.eval(), env, None if vis is None else vis["visibility"],
+                  None if vis is None else vis["directions"])
 
 
 def light_array(fitted: Fitted) -> np.ndarray:

@@ -88,26 +88,35 @@ class Samples:
     normal: Tensor
     view: Tensor
     color: Tensor
+    visibility: Tensor | None = None
+    """[N, D] uint8 (0..255): the share of each light direction the pixel's point sees (``--shadows``)."""
 
     def __len__(self) -> int:
         return len(self.position)
 
 
-def gather_samples(surface: Surface, views: list, progress: Callable[[int], None] | None = None) -> Samples:
+def gather_samples(surface: Surface, views: list, progress: Callable[[int], None] | None = None,
+                   vertex_vis: Tensor | None = None) -> Samples:
     """Samples of ``views``: (camera, RGB uint8 [H, W, 3], coverage [H, W] in [0, 1] or None) each; pixels not
-    fully covered in the photo are left out (their colour mixes the background in)."""
-    parts: list[list[Tensor]] = [[], [], [], []]
+    fully covered in the photo are left out (their colour mixes the background in). ``vertex_vis`` [V, D]: the
+    surface's vertex visibility, interpolated to each sample."""
+    from anisdf.materials.visibility import interpolate
+
+    parts: list[list[Tensor]] = [[], [], [], [], []]
     for i, (cam, rgb, cover) in enumerate(views):
         hits = cast_pixels(surface, cam)
         keep = torch.ones(len(hits.pixel), dtype=torch.bool)
         if cover is not None:
             keep = torch.as_tensor(cover).reshape(-1)[hits.pixel] >= 0.999
         color = torch.as_tensor(rgb).reshape(-1, 3)[hits.pixel].float() / 255.0
-        for part, t in zip(parts, (hits.position, hits.normal, hits.view, color), strict=True):
+        for part, t in zip(parts[:4], (hits.position, hits.normal, hits.view, color), strict=True):
             part.append(t[keep])
+        if vertex_vis is not None:
+            vis = interpolate(vertex_vis, surface.faces, hits.face[keep], hits.bary[keep])
+            parts[4].append((vis * 255.0 + 0.5).to(torch.uint8))
         if progress:
             progress(i)
-    return Samples(*(torch.cat(p) for p in parts))
+    return Samples(*(torch.cat(p) for p in parts[:4]), torch.cat(parts[4]) if parts[4] else None)
 
 
 @dataclass(kw_only=True)
@@ -121,6 +130,8 @@ class FitSettings:
     tv_material: float = 1e-3
     tv_light: float = 1e-4
     metallic_prior: float = 1e-3
+    shadows: int = 0
+    """Light directions whose visibility from the surface shadows the shading (0: no shadows)."""
 
 
 class Fit:
@@ -137,12 +148,15 @@ class Fit:
                                     lr=settings.lr)
         self.step = 0
         self.seconds = 0.0
+        self.directions: Tensor | None = None  # the light directions of the samples' visibility
 
     def loss(self, s: Samples, idx: Tensor) -> tuple[Tensor, Tensor]:
         """The objective on samples ``idx`` and its photometric part (the mean squared sRGB error)."""
         cfg = self.settings
         base, rough, metal = self.material(s.position[idx])
-        rgb = shade(self.prefilter(self.light()), s.normal[idx], s.view[idx], base, rough, metal)
+        vis = s.visibility[idx].float() / 255.0 if s.visibility is not None and self.directions is not None else None
+        rgb = shade(self.prefilter(self.light()), s.normal[idx], s.view[idx], base, rough, metal, vis,
+                    self.directions)
         mse = ((srgb(rgb) - s.color[idx]) ** 2).mean()
         reg = (cfg.tv_material * self.material.total_variation() + cfg.tv_light * self.light.total_variation()
                + cfg.metallic_prior * metal.mean())

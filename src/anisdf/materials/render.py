@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from anisdf.export.reference_renderer import PinholeCamera, resolve
 from anisdf.materials.environment import Prefilter, Prefiltered, downsample
 from anisdf.materials.fit import MaterialGrid, srgb
 from anisdf.materials.shading import shade
 from anisdf.materials.surface import Surface, cast_pixels
+from anisdf.materials.visibility import interpolate
 
 
 def prepare_light(env: torch.Tensor, samples: int = 256, rows: int = 64) -> Prefiltered:
@@ -29,8 +31,10 @@ def prepare_light(env: torch.Tensor, samples: int = 256, rows: int = 64) -> Pref
 
 @torch.no_grad()
 def render_view(surface: Surface, material: MaterialGrid, light: Prefiltered, cam: PinholeCamera,
-                supersample: int = 2, pixel_filter: float = 0.6) -> np.ndarray:
-    """RGBA float [H, W, 4]: sRGB-encoded straight colour and coverage."""
+                supersample: int = 2, pixel_filter: float = 0.6, visibility: Tensor | None = None,
+                directions: Tensor | None = None) -> np.ndarray:
+    """RGBA float [H, W, 4]: sRGB-encoded straight colour and coverage; with the surface's vertex ``visibility``
+    [V, D] of the light's ``directions`` [D, 3], shadowed."""
     s = int(supersample)
     fine = PinholeCamera(cam.c2w, cam.fx * s, cam.fy * s, cam.cx * s, cam.cy * s, cam.width * s, cam.height * s,
                          cam.distortion)
@@ -39,7 +43,8 @@ def render_view(surface: Surface, material: MaterialGrid, light: Prefiltered, ca
     samples = torch.zeros(n_pix, 4)
     if len(hits.pixel):
         base, rough, metal = material(hits.position)
-        rgb = shade(light, hits.normal, hits.view, base, rough, metal).clamp(0.0, 1.0)
+        vis = None if visibility is None else interpolate(visibility, surface.faces, hits.face, hits.bary)
+        rgb = shade(light, hits.normal, hits.view, base, rough, metal, vis, directions).clamp(0.0, 1.0)
         samples[hits.pixel, :3] = rgb
         samples[hits.pixel, 3] = 1.0
     out = resolve(samples.reshape(fine.height, fine.width, 4), s, pixel_filter)

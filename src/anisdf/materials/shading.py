@@ -20,14 +20,21 @@ def reflect(v: Tensor, n: Tensor) -> Tensor:
     return 2.0 * (n * v).sum(-1, keepdim=True) * n - v
 
 
-def shade(light: Prefiltered, n: Tensor, v: Tensor, base: Tensor, roughness: Tensor, metallic: Tensor) -> Tensor:
+def shade(light: Prefiltered, n: Tensor, v: Tensor, base: Tensor, roughness: Tensor, metallic: Tensor,
+          visibility: Tensor | None = None, directions: Tensor | None = None) -> Tensor:
     """Outgoing linear radiance [M, 3] at points with unit normals ``n`` and view directions ``v`` [M, 3], base
-    colour [M, 3], roughness and metallic [M] (split sum)."""
+    colour [M, 3], roughness and metallic [M] (split sum); with ``visibility`` [M, D] of the light's ``directions``
+    [D, 3], shadowed (:func:`anisdf.materials.visibility.shadowing`)."""
     nv = (n * v).sum(-1).clamp(1e-4, 1.0)
     a, b, c = dfg_lookup(nv, roughness)
     f0, c_diff = f0_and_diffuse(base, metallic[:, None])
     spec = light.specular(reflect(v, n), roughness) * (f0 * a[:, None] + b[:, None])
     diff = light.diffuse(n) * c_diff * (1.0 - f0 - (1.0 - f0) * c[:, None])
+    if visibility is not None and directions is not None:
+        from anisdf.materials.visibility import shadowing
+
+        d_fac, s_fac = shadowing(light, directions, visibility, n, reflect(v, n))
+        spec, diff = spec * s_fac, diff * d_fac
     return spec + diff
 
 

@@ -92,6 +92,10 @@ class Hits:
     position: Tensor
     normal: Tensor
     view: Tensor
+    face: Tensor
+    """[M] the triangle hit."""
+    bary: Tensor
+    """[M, 3] barycentrics of the hit in it."""
 
 
 def cast_pixels(surface: Surface, cam: PinholeCamera) -> Hits:
@@ -107,4 +111,4 @@ def cast_pixels(surface: Surface, cam: PinholeCamera) -> Hits:
     # a shading normal facing away from the viewer (silhouettes of a coarse mesh) is bent to the horizon
     nv = (nrm * view).sum(-1, keepdim=True)
     nrm = torch.where(nv < 1e-3, F.normalize(nrm - (nv - 1e-3) * view, dim=-1), nrm)
-    return Hits(hit, pos, nrm, view)
+    return Hits(hit, pos, nrm, view, face[hit], bary[hit])

@@ -36,6 +36,8 @@ class MaterialsOptions:
     resolution: int = option(256, "marching cubes resolution of the surface", int_at_least(16))
     faces: int = option(200_000, "triangles of the surface", int_at_least(4))
     light_rows: int = option(32, "rows of the fitted light map (columns: twice as many)", int_at_least(8))
+    shadows: int = option(0, "shadow the shading with the light's visibility from the surface over this many "
+                             "directions (shadow maps, e.g. 64); 0: no shadows", int_at_least(0))
     grid: int = option(48, "cells a side of the material grid", int_at_least(2))
     batch: int = option(8192, "pixels a step", int_at_least(16))
     max_views: int = option(0, "use at most this many training views (0: all)", int_at_least(0))
@@ -85,6 +87,28 @@ def _surface(rd: RunDir, o: MaterialsOptions, cfg, model, ck):
     return surface
 
 
+def _visibility(rd: RunDir, o: MaterialsOptions, surface) -> dict[str, Any] | None:
+    """The surface's vertex visibility for ``--shadows`` directions, computed once and kept beside the surface
+    (None without shadows; a file made for another surface or direction count is made anew)."""
+    from anisdf.materials.visibility import fibonacci_directions, vertex_visibility
+    from anisdf.training.checkpoint import atomic_save, load_checkpoint
+
+    path = rd.materials_visibility
+    if not o.shadows:
+        path.unlink(missing_ok=True)  # a fit without shadows is rendered without them
+        return None
+    if path.is_file() and not o.restart:
+        vis = load_checkpoint(path)
+        if vis["visibility"].shape == (len(surface.positions), o.shadows):
+            return vis
+    start = time.monotonic()
+    directions = fibonacci_directions(o.shadows)
+    vis = {"directions": directions, "visibility": vertex_visibility(surface, directions)}
+    atomic_save(vis, path)
+    log.info("materials: the light's visibility over %d directions in %.0f s", o.shadows, time.monotonic() - start)
+    return vis
+
+
 def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any) -> dict[str, Any]:
     """Fit RUN's light and material for ``minutes`` (continuing RUN/materials/fit.pt unless ``restart``); returns
     materials.json's content."""
@@ -105,15 +129,18 @@ def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any
     del model
     views = _training_views(rd.root, cfg, ck, o.max_views)
     bar = tqdm(total=len(views), desc="materials: pixels", disable=not o.progress, leave=False, unit="view")
-    samples = gather_samples(surface, views, progress=lambda _i: bar.update(1))
+    vis = _visibility(rd, o, surface)
+    samples = gather_samples(surface, views, progress=lambda _i: bar.update(1),
+                             vertex_vis=None if vis is None else vis["visibility"])
     bar.close()
     if len(samples) < 16:
         raise AnisdfError(f"{rd.root}: the training photos show too little of the surface to fit a material")
-    settings = FitSettings(batch=o.batch, light_rows=o.light_rows, grid=o.grid)
+    settings = FitSettings(batch=o.batch, light_rows=o.light_rows, grid=o.grid, shadows=o.shadows)
     fit = Fit(surface, settings, light_init=float(2.0 * linear(samples.color).mean()))
+    fit.directions = None if vis is None else vis["directions"]
     if rd.materials_checkpoint.is_file() and not o.restart:
         state = load_checkpoint(rd.materials_checkpoint)
-        if state.get("settings") != vars(settings):
+        if {**vars(FitSettings()), **state.get("settings", {})} != vars(settings):  # older fits lack newer keys
             raise AnisdfError(f"{rd.materials_checkpoint}: fitted with other settings ({state.get('settings')}); "
                               "pass --restart to start anew")
         fit.load_state_dict(state)

@@ -109,11 +109,13 @@ def relight(run: Path, out: Path, options: RelightOptions | None = None, **chang
 
     names = []
     for name, cam in tqdm(cams, desc="relight", disable=not o.progress, unit="view"):
-        img = render_view(fitted.surface, fitted.material, light, cam, o.supersample, o.pixel_filter)
+        img = render_view(fitted.surface, fitted.material, light, cam, o.supersample, o.pixel_filter,
+                          fitted.visibility, fitted.directions)
         with atomic_path(out / f"{name}.png") as tmp:
             Image.fromarray((img.clip(0, 1) * 255 + 0.5).astype(np.uint8), "RGBA").save(tmp, format="PNG")
         names.append(name)
     info = {"run": str(Path(run).resolve()), "env": str(o.env), "rotate": o.rotate, "views": names,
+            "shadows": 0 if fitted.directions is None else len(fitted.directions),
             "supersample": o.supersample, "pixel_filter": o.pixel_filter,
             "seconds": round(time.monotonic() - start, 1)}
     write_text_atomic(out / "relight.json", json.dumps(info, indent=2) + "\n")
