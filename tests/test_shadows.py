@@ -64,6 +64,8 @@ def test_shading_with_full_visibility_is_shading_without_it_and_shadows_darken()
     none = shade(light, n, v, base, rough, metal, torch.zeros(50, 32), d)
     half = shade(light, n, v, base, rough, metal, (d[:, 2] < 0).float().expand(50, 32), d)
     assert torch.allclose(full, plain, atol=1e-6)
+    convex = shade(light, n, v, base, rough, metal, (n @ d.T > 0).float(), d)  # sees all above, nothing below
+    assert torch.allclose(convex, plain, atol=1e-6)
     assert float(none.abs().max()) < 1e-6
     assert bool((half <= plain + 1e-6).all()) and float((plain - half).mean()) > 0.01
     diff, spec = shadowing(light, d, torch.ones(50, 32), n, v)

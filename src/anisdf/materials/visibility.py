@@ -94,6 +94,9 @@ def shadowing(light: Prefiltered, directions: Tensor, vis: Tensor, n: Tensor, r:
     seen = (vis * cos) @ radiance
     total = (cos @ radiance).clamp_min(1e-8)
     diffuse = (seen / total).clamp(0.0, 1.0)
-    k = torch.exp(SPECULAR_SHARPNESS * (r @ directions.T - 1.0))
+    # the kernel around r over the directions above the surface only: below it the point sees nothing by
+    # definition, which is no shadow (a grazing reflection of an unoccluded point keeps its highlight)
+    k = torch.exp(SPECULAR_SHARPNESS * (r @ directions.T - 1.0)) * (cos > 0)
     specular = ((vis * k).sum(-1, keepdim=True) / k.sum(-1, keepdim=True).clamp_min(1e-8))
+    specular = torch.where(k.sum(-1, keepdim=True) > 0, specular, torch.ones_like(specular))
     return diffuse, specular
