@@ -203,3 +203,18 @@ def test_a_resumed_run_keeps_the_parts_its_checkpoint_has():
     cfg = load_config("cpu-quick", AUTO)
     _settle_switches(cfg, ["cameras.delta", "image_codes.codes"])
     assert (cfg.cameras.refine, cfg.appearance.embedding) == ("auto", "auto")
+
+
+def test_fit_left_half_scores_the_right_halves_of_a_run_without_codes_too(tmp_path):
+    """Runs with and without codes compare under one protocol: fit-left-half scores right halves for both."""
+    from anisdf.cli import main
+    from anisdf.tasks.evaluate import evaluate
+
+    write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
+    assert main(["train", str(tmp_path / "s"), "--out", str(tmp_path / "r"), "--preset", "cpu-quick",
+                 "--max-steps", "4", "--no-progress", *TINY]) == 0
+    whole = evaluate(tmp_path / "r", split="test", progress=False)
+    half = evaluate(tmp_path / "r", split="test", appearance="fit-left-half", progress=False)
+    assert whole["protocol"]["appearance"]["scored"] == "whole image"
+    assert half["protocol"]["appearance"]["scored"].startswith("right half")
+    assert half["psnr"] != whole["psnr"]

@@ -169,7 +169,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
         with codes.view_code(model, data, i, o.appearance):
             row, res, normal_name, skip = scoring.score_view(
                 model, data, i, ids[i], scene, ck, cfg.renderer.eval_chunk_rays, o.normal_mask, asset,
-                right_half=o.appearance == "fit-left-half" and model.image_codes is not None)
+                right_half=o.appearance == "fit-left-half")
         per_view.append(row)
         if normal_name is not None:
             normal_names.add(normal_name)

@@ -63,7 +63,11 @@ def view_code(model, data, i: int, protocol: str) -> Iterator[None]:
 def appearance_record(model, protocol: str) -> dict[str, Any]:
     """eval.json's ``protocol.appearance``."""
     if getattr(model, "image_codes", None) is None:
-        return {"codes": "none (appearance.embedding off): one appearance for every view", "scored": "whole image"}
+        # fit-left-half on a run without codes scores the same right halves, so that runs with and without codes
+        # compare under one protocol
+        return {"codes": "none (appearance.embedding off): one appearance for every view", "protocol": protocol,
+                "scored": "whole image" if protocol == "mean" else
+                          "right half (columns >= W // 2) for PSNR and SSIM, as fit-left-half scores a run with codes"}
     if protocol == "mean":
         return {"codes": "per training image (appearance.embedding)", "protocol": "mean",
                 "view_code": "the mean of the training images' codes, for every scored view", "scored": "whole image"}
