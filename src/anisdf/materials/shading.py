@@ -13,6 +13,7 @@ from torch import Tensor
 
 from anisdf.materials.brdf import brdf, dfg_lookup, f0_and_diffuse
 from anisdf.materials.environment import Prefiltered, solid_angles, texel_directions
+from anisdf.materials.visibility import shadowing
 
 
 def reflect(v: Tensor, n: Tensor) -> Tensor:
@@ -31,8 +32,6 @@ def shade(light: Prefiltered, n: Tensor, v: Tensor, base: Tensor, roughness: Ten
     spec = light.specular(reflect(v, n), roughness) * (f0 * a[:, None] + b[:, None])
     diff = light.diffuse(n) * c_diff * (1.0 - f0 - (1.0 - f0) * c[:, None])
     if visibility is not None and directions is not None:
-        from anisdf.materials.visibility import shadowing
-
         d_fac, s_fac = shadowing(light, directions, visibility, n, reflect(v, n))
         spec, diff = spec * s_fac, diff * d_fac
     return spec + diff

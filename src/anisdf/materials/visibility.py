@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from anisdf.data.orbit import look_at
 from anisdf.export.reference_renderer import PinholeCamera, cast
 from anisdf.materials.environment import Prefiltered, lookup
 
@@ -39,13 +40,9 @@ def fibonacci_directions(n: int) -> Tensor:
 def _camera_along(d: np.ndarray, centre: np.ndarray, radius: float, size: int) -> PinholeCamera:
     """A camera far out along ``d`` looking back at ``centre``, the sphere of ``radius`` filling ``size`` pixels."""
     dist = 50.0 * radius
-    z = -d
-    helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(z, helper)
-    x /= np.linalg.norm(x)
+    up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])  # never along d
     c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    c2w[:3, 3] = centre + d * dist
+    c2w[:3, :4] = look_at(centre + d * dist, centre, up).numpy()
     f = 0.5 * size * dist / (1.05 * radius)
     return PinholeCamera(c2w, f, f, size / 2.0, size / 2.0, size, size)
 
