@@ -82,7 +82,7 @@ def fake_build(tmp_path, monkeypatch) -> Iterator[dict]:
     monkeypatch.setattr(cpu_kernel, "_state", {"module": None, "error": None, "build_s": None, "name": None,
                                                "flags": None})
     flags, tag = cpu_kernel._compile_flags()
-    build_dir = cpu_kernel.build_directory(cpu_kernel.extension_name(cpu_kernel.SOURCE.read_bytes(), flags, tag))
+    build_dir = cpu_kernel.build_directory(cpu_kernel.extension_name(cpu_kernel.source_bytes(), flags, tag))
     build_dir.mkdir(parents=True)
     calls: list[bool] = []
     module = ModuleType("fake_kernel")
@@ -193,7 +193,7 @@ def test_a_killed_build_does_not_hang_the_next_load(tmp_path, monkeypatch) -> No
     env.update(TORCH_DONT_CHECK_COMPILER_ABI="1", ANISDF_KERNEL_WAIT="60",
                PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
     flags, tag = cpu_kernel._compile_flags()
-    build_dir = tmp_path / "ext" / cpu_kernel.extension_name(cpu_kernel.SOURCE.read_bytes(), flags, tag)
+    build_dir = tmp_path / "ext" / cpu_kernel.extension_name(cpu_kernel.source_bytes(), flags, tag)
     torch_lock = build_dir / build_lock.TORCH_LOCK_NAME
     slow = _stand_in_compiler(tmp_path / "slow-c++", "exec sleep 300")
     first = subprocess.Popen([sys.executable, "-c", _LOAD], env={**env, "CXX": slow}, start_new_session=True,

@@ -147,6 +147,11 @@ class RendererConfig:
     radius: float = 1.0
     """Bounding sphere of the object in normalised coordinates."""
     grid_resolution: int = 128
+    grid_refine: int = 1
+    """Training rays march the occupancy grid refined by this factor: at each update the occupied cells are split
+    and children that cannot reach the surface's density band are dropped (occupancy_grid.refined), so a ray
+    crosses a thinner shell of samples in front of the surface. 1: the grid itself. It applies once the grid has
+    at most 400k / factor^3 occupied cells (``models/anisdf.GRID_REFINE_BUDGET``; early on, most cells are)."""
     grid_update_every: int = 16
     grid_warmup_steps: int = 256
     occupancy_threshold: float = 0.01

@@ -27,17 +27,20 @@ from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
 from anisdf.fields.hash_grid import GridSpec, HashGrid
+from anisdf.fields.softplus import softplus, softplus_slope
 
 BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
 
 
-def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor]) -> tuple[Tensor, Tensor]:
+def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor], fast: bool = True
+                        ) -> tuple[Tensor, Tensor]:
     """Softplus MLP ``out = W_L sp(... sp(W_1 h + b_1) ...) + b_L`` [N, O] and ``d out[:, 0] / d h`` [N, D].
 
     The gradient is the chain rule written out: ``g = (((w_L * s_{L-1}) W_{L-1} * s_{L-2}) ... * s_1) W_1`` with
     ``w_L`` the first row of ``W_L`` and ``s_i = sigmoid(beta z_i)`` the slope of softplus at layer ``i``'s
     pre-activation ``z_i``. Only first-order operators: a loss on ``g`` needs one ordinary backward, and the whole
-    function is a plain graph that ``torch.compile`` can fuse (a double backward cannot be compiled).
+    function is a plain graph that ``torch.compile`` can fuse (a double backward cannot be compiled). Each softplus
+    and its slope come from one pass (:func:`anisdf.fields.softplus.softplus_slope`; ``fast=False``: PyTorch's).
     """
     slopes = []
     for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
@@ -45,8 +48,8 @@ def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor]) 
         if i == len(weights) - 1:
             h = z
         else:
-            slopes.append(torch.sigmoid(BETA * z))
-            h = F.softplus(z, beta=BETA)
+            h, s = softplus_slope(z, BETA, fast)
+            slopes.append(s)
     g = weights[-1][0].expand(h.shape[0], -1)
     for w, s in zip(reversed(weights[:-1]), reversed(slopes), strict=True):
         g = (g * s) @ w
@@ -62,6 +65,7 @@ class SDFBranch(nn.Module):
         self.n_levels = spec.n_levels
         self.features = spec.features_per_level
         self.start_levels = min(start_levels, spec.n_levels)
+        self.fast = cfg.encoding_backend != "torch"  # the compiled softplus too; "torch" is the pure reference
         self.register_buffer("active_levels", torch.tensor(self.start_levels), persistent=True)
         # the same count as a Python int and as a 0/1 weight per encoding feature, changed only by set_step: reading
         # the buffer would wait for the GPU, and rebuilding the weights costs a few kernels per SDF query
@@ -102,7 +106,7 @@ class SDFBranch(nn.Module):
         for i, layer in enumerate(self.layers):
             h = layer(h)
             if i < len(self.layers) - 1:
-                h = F.softplus(h, beta=BETA)
+                h = softplus(h, BETA, self.fast)
         return h
 
     def forward_with_grad(self, x: Tensor, create_graph: bool,
@@ -118,7 +122,7 @@ class SDFBranch(nn.Module):
             enc = self.encode(xg)
         with torch.set_grad_enabled(create_graph):
             out, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
-                         [lay.bias for lay in self.layers])
+                         [lay.bias for lay in self.layers], self.fast)
             (g_enc,) = torch.autograd.grad(enc, xg, g[:, 3:], create_graph=create_graph)
             return out, g[:, :3] + g_enc
 
@@ -198,16 +202,15 @@ class SDFField(nn.Module):
         return self.forward(x)[0]
 
     def distance(self, x: Tensor) -> Tensor:
-        """The SDF alone [N], for queries that need no feature (pruning, grids, meshes of a fixed model): each
-        branch's last layer computes only its SDF row. Equal to :meth:`sdf` up to float rounding (another matrix
-        product); training keeps :meth:`sdf`, so its numerics do not move."""
+        """The SDF alone [N], for queries that need no feature (pruning, grids, meshes): each branch's last layer
+        computes only its SDF row. Equal to :meth:`sdf` up to float rounding (another matrix product)."""
         with torch.autocast(x.device.type, enabled=False):
             xn = self._normalised(x)
             parts = []
             for b in self.branches:
                 h = torch.cat([xn, b.encode(xn)], dim=-1)
                 for layer in b.layers[:-1]:
-                    h = F.softplus(layer(h), beta=BETA)
+                    h = softplus(layer(h), BETA, b.fast)
                 last = b.layers[-1]
                 parts.append(torch.addmv(last.bias[0], h, last.weight[0]))
             return self._fuse(parts) * self.radius

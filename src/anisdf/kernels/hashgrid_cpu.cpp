@@ -610,11 +610,16 @@ std::vector<torch::Tensor> encode_double_backward(torch::Tensor g, torch::Tensor
   return {og, ot, ox};
 }
 
+// kernels/softplus_cpu.cpp, built into the same extension
+std::vector<torch::Tensor> softplus_slope(torch::Tensor z, double beta, bool want_slope);
+torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tensor> da,
+                                      std::optional<torch::Tensor> ds, double beta);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   namespace py = pybind11;
   // The kernels run without the GIL, so other Python threads (data loading, logging) keep going.
   const auto nogil = py::call_guard<py::gil_scoped_release>();
-  m.doc() = "anisdf CPU hash-grid encoding (forward, backward, double backward)";
+  m.doc() = "anisdf CPU kernels: hash-grid encoding (forward, backward, double backward), softplus with its slope";
   m.def("encode_forward", &encode_forward, "out[N, L*F] = hash_encode(x, table)", py::arg("x"), py::arg("table"),
         py::arg("levels"), py::arg("log2_size"), nogil);
   m.def("encode_backward", &encode_backward, "(grad_table, grad_x) of hash_encode; None where not needed",
@@ -624,4 +629,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "(grad_g, grad_table, grad_x) of the backward's outputs; None where not needed", py::arg("g"),
         py::arg("x"), py::arg("table"), py::arg("ggx"), py::arg("ggt"), py::arg("levels"),
         py::arg("log2_size"), py::arg("need_g"), py::arg("need_table"), py::arg("need_x"), nogil);
+  m.def("softplus_slope", &softplus_slope, "(softplus_beta(z), sigmoid(beta z)); the second undefined without want_slope",
+        py::arg("z"), py::arg("beta"), py::arg("want_slope"), nogil);
+  m.def("softplus_slope_backward", &softplus_slope_backward, "dz = da * s + ds * beta * s * (1 - s)", py::arg("s"),
+        py::arg("da"), py::arg("ds"), py::arg("beta"), nogil);
 }

@@ -87,6 +87,14 @@ class OccupancyGrid(nn.Module):
         self.n_updates += 1
         return self.occupied.float().mean().item()
 
+    def upsampled(self, factor: int) -> Tensor:
+        """The occupancy of a grid ``factor`` times finer whose children copy their parent's [(r f)^3] bool."""
+        r, f = self.resolution, int(factor)
+        occ = self.occupied.view(r, r, r)
+        for axis in range(3):
+            occ = occ.repeat_interleave(f, dim=axis)
+        return occ.reshape(-1)
+
     @torch.no_grad()
     def refined(self, sdf_fn: Callable[[Tensor], Tensor], inv_s: float, factor: int, lipschitz: float = 1.0,
                 chunk: int = 2**16) -> OccupancyGrid:

@@ -79,6 +79,9 @@ class GridBroadcaster(Protocol):
 
 REFINE_BUDGET = 4_000_000
 """Most SDF queries :meth:`AniSDFModel.image_grid` spends on refining (a trained cpu-quick bunny: about 2M)."""
+GRID_REFINE_BUDGET = 400_000
+"""Most SDF queries a grid update spends on refining the training grid (``renderer.grid_refine``; a cpu-quick bunny
+late in training: 32k occupied cells of 64^3, 256k children); above it the refined grid copies the grid."""
 
 
 class AniSDFModel(nn.Module):
@@ -95,6 +98,9 @@ class AniSDFModel(nn.Module):
         self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim)
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
         self.grid = OccupancyGrid(r.grid_resolution, r.radius, band=math.log(4.0 / r.occupancy_threshold))
+        # renderer.grid_refine: the grid training rays march, refined at each update (a buffer: exact resume)
+        self.march_grid = (OccupancyGrid(r.grid_resolution * r.grid_refine, r.radius, self.grid.band)
+                           if r.grid_refine > 1 else None)
         # opaque photos without masks: what lies beyond the sphere is learned too
         self.background: nn.Module | None = None
         if learn_background:
@@ -163,13 +169,28 @@ class AniSDFModel(nn.Module):
         bg = self.background if isinstance(self.background, BackgroundNeRF) and self.background.grid_resolution \
             else None
         if job is None or job.is_main:
-            self.grid.update(self.geometry.sdf, float(self.variance()), generator, full=full)
+            self.grid.update(self.geometry.distance, float(self.variance()), generator, full=full)
+            if self.march_grid is not None:
+                self._refine_march_grid(self.march_grid)
             if bg is not None:
                 bg.update_grid(generator, full=full)
         if job is not None:
             job.broadcast_module(self.grid)
+            if self.march_grid is not None:
+                job.broadcast_module(self.march_grid)
             if bg is not None:
                 job.broadcast_tensors([bg.density_ema, bg.occupied])
+
+    @torch.no_grad()
+    def _refine_march_grid(self, fine: OccupancyGrid) -> None:
+        """``renderer.grid_refine``: ``fine`` becomes the grid refined (:meth:`OccupancyGrid.refined`), or its plain
+        copy at the finer resolution while refining would cost more than ``GRID_REFINE_BUDGET`` queries."""
+        f = fine.resolution // self.grid.resolution
+        if int(self.grid.occupied.sum()) * f**3 > GRID_REFINE_BUDGET:
+            fine.occupied.copy_(self.grid.upsampled(f))
+        else:
+            fine.occupied.copy_(self.grid.refined(self.geometry.distance, float(self.variance()), f).occupied)
+        fine.n_updates.copy_(self.grid.n_updates)
 
     @contextlib.contextmanager
     def cached_weights(self) -> Iterator[None]:
@@ -185,17 +206,20 @@ class AniSDFModel(nn.Module):
                     grid: OccupancyGrid | None = None) -> RenderOutput:
         """Render rays (NeuS, Eq. 1): per-ray maps, and in training the per-sample tensors the losses read.
         ``codes``: [B, dim] per-ray appearance codes (:meth:`codes_for`) when the model has them (default: the mean
-        code). ``grid``: the occupancy grid to march (default: the training grid)."""
+        code). ``grid``: the occupancy grid to march (default: the training grid, refined in training with
+        ``renderer.grid_refine``)."""
         n_rays = origins.shape[0]
         rc = self.cfg.renderer
-        s = march(origins, dirs, self.grid if grid is None else grid, self.radius, self.step_size,
+        if grid is None:
+            grid = self.march_grid if train and self.march_grid is not None else self.grid
+        s = march(origins, dirs, grid, self.radius, self.step_size,
                   rc.max_samples_per_ray, generator if train else None)
         inv_s = self.variance()
         n_marched = s.n
         if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
             if train:
-                with torch.no_grad():
-                    sdf0 = self.geometry.sdf(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
+                with torch.no_grad():  # the SDF row alone (no feature): a third of the MLP's work
+                    sdf0 = self.geometry.distance(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
                 keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(),
                                       rc.early_stop_eps)
             else:  # images: front to back, a ray's samples behind its opaque point are never queried

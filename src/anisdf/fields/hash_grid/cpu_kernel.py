@@ -1,4 +1,5 @@
-"""The compiled CPU backend: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``).
+"""The compiled CPU backend: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``, and in the same extension
+``softplus_cpu.cpp``, the SDF MLPs' softplus with its slope: :mod:`anisdf.fields.softplus`).
 
 Built with ``torch.utils.cpp_extension.load`` on first use, once per process, under ``$ANISDF_KERNEL_DIR``, else
 torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), which every checkout
@@ -32,7 +33,9 @@ from anisdf.fields.hash_grid.ops import kernels_disabled, short_error
 
 log = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).resolve().parents[2] / "kernels" / "hashgrid_cpu.cpp"
+_KERNELS = Path(__file__).resolve().parents[2] / "kernels"
+SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp")
+"""The extension's sources; the first holds the Python bindings of all of them."""
 _EXT_NAME = "anisdf_hashgrid_cpu"
 
 # One build attempt per process: the module, or the reason it is unavailable.
@@ -62,6 +65,11 @@ def _compile_flags() -> tuple[list[str], str]:
     if {"avx2", "fma"} <= _cpu_flags():
         return [*flags, "-mavx2", "-mfma"], "avx2"
     return flags, "generic"
+
+
+def source_bytes() -> bytes:
+    """All sources, in order: what the build's name hashes."""
+    return b"\0".join(p.read_bytes() for p in SOURCES)
 
 
 def torch_identity() -> str:
@@ -99,18 +107,19 @@ def build_directory(name: str) -> Path:
 def _load(name: str, flags: list[str], build_dir: Path) -> ModuleType:
     from torch.utils import cpp_extension
 
-    return cpp_extension.load(name=name, sources=[str(SOURCE)], extra_cflags=flags, extra_ldflags=["-fopenmp"],
-                              build_directory=str(build_dir), verbose=False)
+    return cpp_extension.load(name=name, sources=[str(p) for p in SOURCES], extra_cflags=flags,
+                              extra_ldflags=["-fopenmp"], build_directory=str(build_dir), verbose=False)
 
 
 def _build() -> ModuleType:
     cxx = os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         raise RuntimeError(f"no C++ compiler ({cxx}) on PATH")
-    if not SOURCE.is_file():
-        raise RuntimeError(f"kernel source {SOURCE} is missing")
+    missing = [str(p) for p in SOURCES if not p.is_file()]
+    if missing:
+        raise RuntimeError(f"kernel source {missing[0]} is missing")
     flags, tag = _compile_flags()
-    name = extension_name(SOURCE.read_bytes(), flags, tag)
+    name = extension_name(source_bytes(), flags, tag)
     build_dir = build_directory(name)
     wait_s = wait_seconds()
     log.info("hash grid: loading the compiled CPU kernel (the first build takes about a minute)")
