@@ -336,6 +336,45 @@ def test_images_on_the_refined_grid_match_the_training_grid_with_fewer_samples(m
     assert (fine["opacity"] - coarse["opacity"]).abs().max() < 2e-3
 
 
+def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_samples():
+    """renderer.grid_refine: training rays march a grid refined at each update; the samples it drops lie in front
+    of the surface's density band, so a training render is the same within float noise, from fewer samples."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    def model_for(refine: int) -> AniSDFModel:
+        cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12",
+                                        "renderer.grid_resolution=32", f"renderer.grid_refine={refine}"])
+        torch.manual_seed(0)
+        model = AniSDFModel(cfg)
+        with torch.no_grad():
+            model.variance.variance.fill_(math.log(300.0) / cfg.renderer.variance_scale)  # inv_s = 300
+        return model
+
+    plain, refined = model_for(1), model_for(2)
+    assert refined.march_grid is not None and refined.march_grid.resolution == 64
+    # before any update every cell is occupied: the refined grid is a plain copy at the finer resolution
+    assert refined.march_grid.occupied.all()
+    for m in (plain, refined):
+        m.update_grid(torch.Generator().manual_seed(0), full=True)
+    fine = refined.march_grid.occupied
+    assert torch.equal(refined.grid.occupied, plain.grid.occupied)
+    assert not (fine & ~refined.grid.upsampled(2)).any()  # only children of occupied cells
+    assert fine.sum() < 0.8 * refined.grid.upsampled(2).sum()
+    assert "march_grid.occupied" in refined.state_dict()  # saved with the model: resume marches the same grid
+    later = model_for(2)  # a checkpoint of a run without refinement loads: its grid, copied at the finer resolution
+    later.load_state_dict(plain.state_dict())
+    assert later.march_grid is not None and torch.equal(later.march_grid.occupied, plain.grid.upsampled(2))
+    gen = torch.Generator().manual_seed(1)
+    o = F.normalize(torch.randn(1, 3, generator=gen), dim=-1).expand(2048, 3) * 3.0
+    d = F.normalize(-o + 0.35 * torch.randn(2048, 3, generator=gen), dim=-1)
+    outs = [m.render_rays(o, d, torch.ones_like(d), train=True, generator=torch.Generator().manual_seed(2))
+            for m in (plain, refined)]
+    assert (outs[0].opacity > 0.5).sum() > 300
+    assert outs[1].n_samples < 0.8 * outs[0].n_samples
+    assert (outs[1].rgb - outs[0].rgb).abs().max() < 2e-3
+    assert (outs[1].opacity - outs[0].opacity).abs().max() < 2e-3
+
+
 @pytest.mark.parametrize("segment", [1, 3, 8, 1000])
 def test_early_ray_termination_keeps_the_samples_of_the_one_pass_pruning(segment):
     """prune_occluded_progressive queries the SDF a few samples a ray at a time and stops a ray once it is opaque:

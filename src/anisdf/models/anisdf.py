@@ -101,6 +101,7 @@ class AniSDFModel(nn.Module):
         # renderer.grid_refine: the grid training rays march, refined at each update (a buffer: exact resume)
         self.march_grid = (OccupancyGrid(r.grid_resolution * r.grid_refine, r.radius, self.grid.band)
                            if r.grid_refine > 1 else None)
+        self.register_load_state_dict_pre_hook(self._march_grid_from_grid)
         # opaque photos without masks: what lies beyond the sphere is learned too
         self.background: nn.Module | None = None
         if learn_background:
@@ -180,6 +181,16 @@ class AniSDFModel(nn.Module):
                 job.broadcast_module(self.march_grid)
             if bg is not None:
                 job.broadcast_tensors([bg.density_ema, bg.occupied])
+
+    def _march_grid_from_grid(self, _module: nn.Module, state: dict, prefix: str, *_: object) -> None:
+        """Loading a checkpoint of a run without ``renderer.grid_refine`` into a model with it: the march grid
+        starts as the loaded grid's copy at the finer resolution (the next grid update refines it)."""
+        key = prefix + "march_grid.occupied"
+        if self.march_grid is not None and key not in state and prefix + "grid.occupied" in state:
+            coarse = OccupancyGrid(self.grid.resolution, self.radius, self.grid.band)
+            coarse.occupied.copy_(state[prefix + "grid.occupied"])
+            state[key] = coarse.upsampled(self.march_grid.resolution // self.grid.resolution)
+            state[prefix + "march_grid.n_updates"] = state[prefix + "grid.n_updates"].clone()
 
     @torch.no_grad()
     def _refine_march_grid(self, fine: OccupancyGrid) -> None:
