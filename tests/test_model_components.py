@@ -352,6 +352,9 @@ def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_sa
 
     plain, refined = model_for(1), model_for(2)
     assert refined.march_grid is not None and refined.march_grid.resolution == 64
+    coarse_steps = load_config("cpu-quick", ["renderer.grid_resolution=32", "renderer.grid_refine=2",
+                                             "renderer.march_steps=64"])
+    assert AniSDFModel(coarse_steps).march_grid is None  # cells under two march steps wide: no refinement
     # before any update every cell is occupied: the refined grid is a plain copy at the finer resolution
     assert refined.march_grid.occupied.all()
     for m in (plain, refined):

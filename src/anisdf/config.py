@@ -151,7 +151,8 @@ class RendererConfig:
     """Training rays march the occupancy grid refined by this factor: at each update the occupied cells are split
     and children that cannot reach the surface's density band are dropped (occupancy_grid.refined), so a ray
     crosses a thinner shell of samples in front of the surface. 1: the grid itself. It applies once the grid has
-    at most 400k / factor^3 occupied cells (``models/anisdf.GRID_REFINE_BUDGET``; early on, most cells are)."""
+    at most 400k / factor^3 occupied cells (``models/anisdf.GRID_REFINE_BUDGET``; early on, most cells are), and
+    only where a refined cell is at least two march steps wide (``march_steps``)."""
     grid_update_every: int = 16
     grid_warmup_steps: int = 256
     occupancy_threshold: float = 0.01

@@ -98,9 +98,11 @@ class AniSDFModel(nn.Module):
         self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim)
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
         self.grid = OccupancyGrid(r.grid_resolution, r.radius, band=math.log(4.0 / r.occupancy_threshold))
-        # renderer.grid_refine: the grid training rays march, refined at each update (a buffer: exact resume)
-        self.march_grid = (OccupancyGrid(r.grid_resolution * r.grid_refine, r.radius, self.grid.band)
-                           if r.grid_refine > 1 else None)
+        # renderer.grid_refine: the grid training rays march, refined at each update (a buffer: exact resume); never
+        # finer than two march steps a cell, or the thinner shell could fall between a ray's samples
+        fine_res = r.grid_resolution * r.grid_refine
+        self.march_grid = (OccupancyGrid(fine_res, r.radius, self.grid.band)
+                           if r.grid_refine > 1 and 2.0 * r.radius / fine_res >= 2.0 * self.step_size else None)
         self.register_load_state_dict_pre_hook(self._march_grid_from_grid)
         # opaque photos without masks: what lies beyond the sphere is learned too
         self.background: nn.Module | None = None
