@@ -367,6 +367,7 @@ def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_sa
     later = model_for(2)  # a checkpoint of a run without refinement loads: its grid, copied at the finer resolution
     later.load_state_dict(plain.state_dict())
     assert later.march_grid is not None and torch.equal(later.march_grid.occupied, plain.grid.upsampled(2))
+    model_for(1).load_state_dict(refined.state_dict())  # and the other way round: the march grid is left out
     gen = torch.Generator().manual_seed(1)
     o = F.normalize(torch.randn(1, 3, generator=gen), dim=-1).expand(2048, 3) * 3.0
     d = F.normalize(-o + 0.35 * torch.randn(2048, 3, generator=gen), dim=-1)

@@ -186,9 +186,13 @@ class AniSDFModel(nn.Module):
 
     def _march_grid_from_grid(self, _module: nn.Module, state: dict, prefix: str, *_: object) -> None:
         """Loading a checkpoint of a run without ``renderer.grid_refine`` into a model with it: the march grid
-        starts as the loaded grid's copy at the finer resolution (the next grid update refines it)."""
+        starts as the loaded grid's copy at the finer resolution (the next grid update refines it). The other way
+        round, the checkpoint's march grid is left out (it is derived from the grid)."""
         key = prefix + "march_grid.occupied"
-        if self.march_grid is not None and key not in state and prefix + "grid.occupied" in state:
+        if self.march_grid is None:
+            state.pop(key, None)
+            state.pop(prefix + "march_grid.n_updates", None)
+        elif key not in state and prefix + "grid.occupied" in state:
             coarse = OccupancyGrid(self.grid.resolution, self.radius, self.grid.band)
             coarse.occupied.copy_(state[prefix + "grid.occupied"])
             state[key] = coarse.upsampled(self.march_grid.resolution // self.grid.resolution)
