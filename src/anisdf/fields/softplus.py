@@ -19,9 +19,9 @@ from torch import Tensor
 from anisdf.fields.hash_grid.cpu_kernel import kernel_module
 
 
-def softplus_slope_reference(z: Tensor, beta: float, slope: bool = True) -> tuple[Tensor, Tensor | None]:
-    """``(softplus(z, beta), sigmoid(beta z))`` with PyTorch's operators (the slope only when asked)."""
-    return F.softplus(z, beta=beta), (torch.sigmoid(beta * z) if slope else None)
+def softplus_slope_reference(z: Tensor, beta: float) -> tuple[Tensor, Tensor]:
+    """``(softplus(z, beta), sigmoid(beta z))`` with PyTorch's operators."""
+    return F.softplus(z, beta=beta), torch.sigmoid(beta * z)
 
 
 class _SoftplusSlope(torch.autograd.Function):
@@ -50,9 +50,7 @@ def softplus_slope(z: Tensor, beta: float, fast: bool = True) -> tuple[Tensor, T
     and it applies, else :func:`softplus_slope_reference`."""
     mod = _kernel_for(z) if fast else None
     if mod is None:
-        a, s = softplus_slope_reference(z, beta)
-        assert s is not None
-        return a, s
+        return softplus_slope_reference(z, beta)
     return _SoftplusSlope.apply(z, beta, mod)
 
 
