@@ -191,6 +191,17 @@ def test_ablation_on_a_scene_folder_not_in_the_paper(lego_root, tmp_path, capsys
     assert "32.38" in md and "anisdf reproduce ablation --data" in md and "--max-steps 1" in md
 
 
+def test_configs_selects_the_table_configurations_in_its_order(lego_root, tmp_path, capsys):
+    out = tmp_path / "some"
+    res = reproduce.reproduce("ablation", lego_root / "my_object", out, configs=["no-fusion", "full"], **FAST)
+    assert [r["config"] for r in res["rows"]] == ["full", "no-fusion"]
+    assert not (out / "my_object" / "no-asg").exists()
+    assert main(["reproduce", "ablation", "--data", str(lego_root), "--out", str(tmp_path / "o"),
+                 "--configs", "full,no-curvature"]) == 2
+    err = capsys.readouterr().err
+    assert "no-curvature not in table ablation" in err and "no-asg-no-fusion" in err
+
+
 def test_dtu_scene_without_official_files_gets_a_note(tmp_path):
     write_test_scene(tmp_path / "dtu" / "scan65", "neus", n_images=8)
     res = reproduce.reproduce("dtu", tmp_path / "dtu", tmp_path / "out", **FAST)

@@ -50,6 +50,8 @@ class ReproduceOptions:
     minutes: float | None = option(
         None, f"time budget per run (0: none; cpu scale: {CPU_MINUTES:g} unless --max-steps is given)",
         float_at_least(0.0))
+    configs: list[str] | None = option(None, "comma-separated configurations of the table (default: all; the "
+                                       "ablation has full, no-asg, no-fusion, no-asg-no-fusion)", comma_list(str))
     seeds: list[int] | str | None = option(
         None, "comma-separated seeds (train.seed), e.g. 0,1 (default 0)")
     max_steps: int | None = option(
@@ -83,6 +85,17 @@ def _seeds(seeds: list[int] | str | None) -> list[int]:
     if len(set(seeds)) != len(seeds):
         raise AnisdfError(f"--seeds lists a seed twice: {','.join(map(str, seeds))}")
     return seeds
+
+
+def _configs(table: PaperTable, configs: list[str] | None) -> list[str]:
+    """The table's configurations to run, in the table's order; all when none are named."""
+    if not configs:
+        return list(table.configs)
+    unknown = [c for c in configs if c not in table.configs]
+    if unknown:
+        raise AnisdfError(f"--configs: {', '.join(unknown)} not in table {table.name} "
+                          f"(it has {', '.join(table.configs)})")
+    return [c for c in table.configs if c in configs]
 
 
 def _data_overrides(preset: str) -> list[str]:
@@ -214,7 +227,8 @@ def reproduce(table_name: str, data: Path, out: Path, options: ReproduceOptions 
         "preset": table.preset if scale == "paper" else CPU_PRESET, "minutes": minutes, "max_steps": max_steps,
         "chamfer_unit": table.chamfer_unit, "command": command, "machine": machine_info(device),
         "rows": list(old_rows), "means": {}}
-    plan = [(name, path, config, seed) for name, path in found for config in table.configs for seed in seeds]
+    configs = _configs(table, o.configs)
+    plan = [(name, path, config, seed) for name, path in found for config in configs for seed in seeds]
     _write(out, table, result)
     eval_opts = {"max_views": o.max_views, "mesh_resolution": o.mesh_resolution, "chamfer_points": o.chamfer_points}
     from anisdf.orchestration.cluster import Task, run_tasks
