@@ -3,8 +3,9 @@
 Every training pixel whose ray hits the surface (and whose photo is fully covered there) gives a sample: point,
 normal, view direction, photo colour (:func:`gather_samples`). Each step renders a random batch with the split sum
 (:func:`anisdf.materials.shading.shade`) and descends on the squared error of the sRGB-encoded colours, plus small
-smoothness terms on the material (total variation of its grid) and on the light (of its log radiance), and a pull of
-metallic toward 0 (a plastic and a metal can explain the same highlight; the simpler is preferred).
+smoothness terms on the material (total variation of its grid) and on the light (of its log radiance), a pull of
+metallic toward 0 (a plastic and a metal can explain the same highlight; the simpler is preferred) and a pull of the
+roughness and metallic grids toward the surface's shared value (``uniform_prior``).
 
 The material is a trilinear grid over the surface's bounding box (:class:`MaterialGrid`: base colour, roughness,
 metallic through sigmoids), the light an equirectangular map of log radiance (:class:`LightMap`).
@@ -130,6 +131,10 @@ class FitSettings:
     tv_material: float = 1e-3
     tv_light: float = 1e-4
     metallic_prior: float = 1e-3
+    uniform_prior: float = 0.0
+    """Weight of the mean squared residual of roughness and metallic (the grid's departure from the shared value):
+    where the photos do not constrain them (no highlight seen, a dim part of the light) they stay at the shared
+    value instead of drifting."""
     shadows: int = 0
     """Light directions whose visibility from the surface shadows the shading (0: no shadows)."""
 
@@ -160,6 +165,8 @@ class Fit:
         mse = ((srgb(rgb) - s.color[idx]) ** 2).mean()
         reg = (cfg.tv_material * self.material.total_variation() + cfg.tv_light * self.light.total_variation()
                + cfg.metallic_prior * metal.mean())
+        if cfg.uniform_prior:
+            reg = reg + cfg.uniform_prior * (self.material.grid[:, 3:] ** 2).mean()
         return mse + reg, mse
 
     def run(self, s: Samples, steps: int, deadline: float, generator: torch.Generator,

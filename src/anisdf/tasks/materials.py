@@ -19,6 +19,7 @@ import torch
 from tqdm.auto import tqdm
 
 from anisdf.errors import AnisdfError
+from anisdf.materials.fit import FitSettings
 from anisdf.run_dir import RunDir
 from anisdf.utils.options import float_at_least, int_at_least, option
 
@@ -39,6 +40,8 @@ class MaterialsOptions:
     shadows: int = option(0, "shadow the shading with the light's visibility from the surface over this many "
                              "directions (shadow maps, e.g. 64); 0: no shadows", int_at_least(0))
     grid: int = option(48, "cells a side of the material grid", int_at_least(2))
+    uniform_prior: float = option(FitSettings.uniform_prior, "pull of roughness and metallic toward their value "
+                                  "shared by the whole surface (0: none)", float_at_least(0.0))
     batch: int = option(8192, "pixels a step", int_at_least(16))
     max_views: int = option(0, "use at most this many training views (0: all)", int_at_least(0))
     restart: bool = option(False, "start the fit anew instead of continuing RUN/materials/fit.pt")
@@ -114,7 +117,7 @@ def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any
     materials.json's content."""
     from anisdf.materials.asset import load_fitted
     from anisdf.materials.environment import write_env
-    from anisdf.materials.fit import Fit, FitSettings, gather_samples, linear
+    from anisdf.materials.fit import Fit, gather_samples, linear
     from anisdf.training.checkpoint import atomic_save, load_checkpoint
 
     o = dataclasses.replace(options or MaterialsOptions(), **changes)
@@ -135,7 +138,8 @@ def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any
     bar.close()
     if len(samples) < 16:
         raise AnisdfError(f"{rd.root}: the training photos show too little of the surface to fit a material")
-    settings = FitSettings(batch=o.batch, light_rows=o.light_rows, grid=o.grid, shadows=o.shadows)
+    settings = FitSettings(batch=o.batch, light_rows=o.light_rows, grid=o.grid, shadows=o.shadows,
+                           uniform_prior=o.uniform_prior)
     fit = Fit(surface, settings, light_init=float(2.0 * linear(samples.color).mean()))
     fit.directions = None if vis is None else vis["directions"]
     if rd.materials_checkpoint.is_file() and not o.restart:
