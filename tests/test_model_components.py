@@ -486,3 +486,41 @@ def test_optimiser_weight_decay_is_the_releases():
     """The release builds AdamW without a weight decay argument, so PyTorch's default applies (NOTES.md)."""
     default = torch.optim.AdamW([torch.zeros(1, requires_grad=True)]).defaults["weight_decay"]
     assert load_config(None, []).optim.weight_decay == default == 0.01
+
+
+def test_between_refinements_the_march_grid_follows_its_parents_without_sdf_queries():
+    """renderer.grid_refine_every: between refinements a cell's children are kept while it stays occupied, dropped
+    when it empties and all taken when it fills; at a refinement update the children are evaluated again."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12",
+                                    "renderer.grid_resolution=16", "renderer.grid_refine=2",
+                                    "renderer.grid_refine_every=2", "renderer.march_steps=1024"])
+    torch.manual_seed(0)
+    model = AniSDFModel(cfg)
+    with torch.no_grad():
+        model.variance.variance.fill_(math.log(300.0) / cfg.renderer.variance_scale)
+    gen = torch.Generator().manual_seed(0)
+    model.update_grid(gen, full=True)  # update 1: between refinements, the march grid copies its parents
+    assert torch.equal(model.march_grid.occupied, model.grid.upsampled(2))
+    model.update_grid(gen, full=True)  # update 2: refined
+    refined = model.march_grid.occupied.clone()
+    assert refined.sum() < 0.8 * model.grid.upsampled(2).sum()
+    calls = []
+    model.geometry.distance = lambda x: calls.append(len(x)) or torch.ones(len(x))  # noqa: E731 (all cells empty)
+    before = model.grid.occupied.clone()
+    filled = (~before).nonzero()[0, 0]
+    model.grid.occupied.zero_()  # the update of step 3 finds one cell newly occupied and all others empty...
+    model.grid.occupied[filled] = True
+    model.grid.n_updates += 1
+    model._refine_march_grid(model.march_grid, before)
+    assert calls == []  # ...and the march grid follows without querying the SDF
+    assert torch.equal(model.march_grid.occupied, model.grid.upsampled(2))
+    model.grid.occupied.copy_(before)  # back as it was: the children of refined parents are kept as refined
+    model.march_grid.occupied.copy_(refined)
+    model.grid.n_updates += 2
+    model._refine_march_grid(model.march_grid, before)
+    assert calls == [] and torch.equal(model.march_grid.occupied, refined)
+    model.grid.n_updates += 1  # a refinement update queries again
+    model._refine_march_grid(model.march_grid, before)
+    assert calls and not model.march_grid.occupied.any()
