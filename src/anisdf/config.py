@@ -213,7 +213,8 @@ class LossConfig:
     """The normal compared at the tangent-shifted point ``x + eps t``: fused (the fused field's, PermutoSDF's form) or
     coarse (the coarse branch's, the paper's fused-granularity form and the release's: it ties the fine grid to the
     coarse one, Sec. 3.2). The coarse target is not detached, as in the release: the loss trains both branches. With
-    ``geometry.kind=single`` both read the one grid."""
+    ``geometry.kind=single`` both read the one grid. The shiny and dtu presets use coarse, cpu-quick fused: at CPU
+    scale the two are within the seed spread (benchmarks/RESULTS.md, "Curvature forms")."""
     curvature_form: Literal["squared", "angle"] = "squared"
     """squared: ``(n . n_eps - 1)^2`` (Eq. 15); angle: ``acos(n . n_eps) / pi`` (the release, after PermutoSDF)."""
     curvature_eps: Literal["finest", "mean_cells"] = "finest"
