@@ -153,9 +153,6 @@ class RendererConfig:
     crosses a thinner shell of samples in front of the surface. 1: the grid itself. It applies once the grid has
     at most 400k / factor^3 occupied cells (``models/anisdf.GRID_REFINE_BUDGET``; early on, most cells are), and
     only where a refined cell is at least two march steps wide (``march_steps``)."""
-    grid_refine_every: int = 1
-    """Refine at every this-many grid updates; in between the refined grid keeps the children of cells that stay
-    occupied and takes every child of a newly occupied cell (a conservative update without SDF queries)."""
     grid_update_every: int = 16
     grid_warmup_steps: int = 256
     occupancy_threshold: float = 0.01

@@ -87,11 +87,10 @@ class OccupancyGrid(nn.Module):
         self.n_updates += 1
         return self.occupied.float().mean().item()
 
-    def upsampled(self, factor: int, occupied: Tensor | None = None) -> Tensor:
-        """The occupancy of a grid ``factor`` times finer whose children copy their parent's [(r f)^3] bool (of
-        ``occupied``, an occupancy of this grid's shape, when given)."""
+    def upsampled(self, factor: int) -> Tensor:
+        """The occupancy of a grid ``factor`` times finer whose children copy their parent's [(r f)^3] bool."""
         r, f = self.resolution, int(factor)
-        occ = (self.occupied if occupied is None else occupied).view(r, r, r)
+        occ = self.occupied.view(r, r, r)
         for axis in range(3):
             occ = occ.repeat_interleave(f, dim=axis)
         return occ.reshape(-1)

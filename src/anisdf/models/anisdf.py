@@ -172,10 +172,9 @@ class AniSDFModel(nn.Module):
         bg = self.background if isinstance(self.background, BackgroundNeRF) and self.background.grid_resolution \
             else None
         if job is None or job.is_main:
-            before = self.grid.occupied.clone() if self.march_grid is not None else None
             self.grid.update(self.geometry.distance, float(self.variance()), generator, full=full)
             if self.march_grid is not None:
-                self._refine_march_grid(self.march_grid, before)
+                self._refine_march_grid(self.march_grid)
             if bg is not None:
                 bg.update_grid(generator, full=full)
         if job is not None:
@@ -200,17 +199,11 @@ class AniSDFModel(nn.Module):
             state[prefix + "march_grid.n_updates"] = state[prefix + "grid.n_updates"].clone()
 
     @torch.no_grad()
-    def _refine_march_grid(self, fine: OccupancyGrid, before: Tensor | None = None) -> None:
+    def _refine_march_grid(self, fine: OccupancyGrid) -> None:
         """``renderer.grid_refine``: ``fine`` becomes the grid refined (:meth:`OccupancyGrid.refined`), or its plain
-        copy at the finer resolution while refining would cost more than ``GRID_REFINE_BUDGET`` queries. Between
-        refinements (``renderer.grid_refine_every``) it keeps its children of cells still occupied and takes all
-        children of cells occupied since ``before`` (the grid's occupancy before this update)."""
+        copy at the finer resolution while refining would cost more than ``GRID_REFINE_BUDGET`` queries."""
         f = fine.resolution // self.grid.resolution
-        every = self.cfg.renderer.grid_refine_every
-        if before is not None and every > 1 and int(self.grid.n_updates) % every != 0:
-            fine.occupied.copy_((fine.occupied & self.grid.upsampled(f))
-                                | self.grid.upsampled(f, self.grid.occupied & ~before))
-        elif int(self.grid.occupied.sum()) * f**3 > GRID_REFINE_BUDGET:
+        if int(self.grid.occupied.sum()) * f**3 > GRID_REFINE_BUDGET:
             fine.occupied.copy_(self.grid.upsampled(f))
         else:
             fine.occupied.copy_(self.grid.refined(self.geometry.distance, float(self.variance()), f).occupied)
