@@ -148,6 +148,24 @@ def test_a_few_fit_steps_lower_the_loss():
     assert fit.step == 25 and after < 0.5 * before, (before, after)
 
 
+def test_the_uniform_prior_holds_unseen_roughness_at_the_shared_value():
+    """--uniform-prior: where no photo constrains roughness (a grid corner no surface point reaches) its residual
+    returns to the shared value; without the prior it stays where it was put."""
+    from anisdf.materials.fit import Fit, FitSettings, gather_samples
+
+    surface, views, _ = _sphere_scene(n_views=2)
+    samples = gather_samples(surface, views)
+    ends = []
+    for prior in (0.0, 1.0):
+        fit = Fit(surface, FitSettings(batch=512, light_rows=8, grid=8, filter_samples=16, uniform_prior=prior,
+                                       tv_material=0.0))
+        with torch.no_grad():
+            fit.material.grid[0, 3, 0, 0, 0] = 2.0  # a corner node: its cells hold no point of the sphere
+        fit.run(samples, 30, deadline=float("inf"), generator=torch.Generator().manual_seed(0))
+        ends.append(float(fit.material.grid[0, 3, 0, 0, 0].detach()))
+    assert ends[0] == 2.0 and ends[1] < 1.6, ends
+
+
 TINY_FIT = ["--minutes", "2", "--steps", "15", "--resolution", "32", "--faces", "3000", "--light-rows", "8",
             "--grid", "4", "--batch", "512", "--no-progress"]
 
