@@ -16,6 +16,7 @@ from anisdf.errors import AnisdfError
 from anisdf.eval.metrics import CHAMFER_POINTS
 from anisdf.run_dir import RunDir
 from anisdf.tasks.evaluate.appearance import PROTOCOLS as APPEARANCE_PROTOCOLS
+from anisdf.tasks.evaluate.view_cameras import PROTOCOLS as CAMERA_PROTOCOLS
 from anisdf.tasks.mesh import MeshOptions
 from anisdf.utils.options import float_at_least, int_at_least, option
 
@@ -54,6 +55,11 @@ class EvalOptions:
     appearance: str = option("mean", "runs with per-image appearance codes (appearance.embedding): render each view "
                              "with the mean code, or fit a code to the left half of the image and score the right "
                              "half (NeRF-W)", choices=APPEARANCE_PROTOCOLS)
+    cameras: str = option("given", "render each view from the dataset's pose, or from that pose corrected by an se(3) "
+                          "fitted to the view's image with the scene frozen (test-time pose optimisation, BARF: for "
+                          "runs with cameras.refine, whose frame the photos fix only up to a small rigid motion, and "
+                          "real captures whose held-out poses are as noisy as the training ones)",
+                          choices=CAMERA_PROTOCOLS)
     relight: Path | None = option(None, "also relight the PBR asset of `anisdf materials` under each light of FOLDER "
                                   "(LIGHT/r_i.png, LIGHT_world.exr) and score it (relight: psnr, ssim per light; "
                                   "material errors where FOLDER/material.json gives the truth)", Path,
@@ -68,6 +74,8 @@ def _check(o: EvalOptions) -> dict[str, Any]:
         raise AnisdfError(f"--normal-mask must be one of {', '.join(NORMAL_MASKS)}, got {o.normal_mask!r}")
     if o.appearance not in APPEARANCE_PROTOCOLS:
         raise AnisdfError(f"--appearance must be one of {', '.join(APPEARANCE_PROTOCOLS)}, got {o.appearance!r}")
+    if o.cameras not in CAMERA_PROTOCOLS:
+        raise AnisdfError(f"--cameras must be one of {', '.join(CAMERA_PROTOCOLS)}, got {o.cameras!r}")
     if not (o.eval_downscale > 0 and np.isfinite(o.eval_downscale)):
         raise AnisdfError(f"--eval-downscale must be a positive number, got {o.eval_downscale}")
     if o.chamfer_points <= 0:
@@ -132,6 +140,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     from anisdf.tasks.evaluate import appearance as codes
     from anisdf.tasks.evaluate import protocol as record
     from anisdf.tasks.evaluate import scoring
+    from anisdf.tasks.evaluate import view_cameras as poses
     from anisdf.tasks.evaluate.report import write_run_report
     from anisdf.tasks.loading import dataset_up, load_run, scene_for_run
     from anisdf.tasks.mesh import mesh_for_eval
@@ -166,11 +175,13 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     normal_names: set[str] = set()
     skipped: list[dict[str, str]] = []
     for i in tqdm(range(n), desc=f"eval {o.split}", unit="view", disable=not o.progress):
-        with codes.view_code(model, data, i, o.appearance):
+        half = o.appearance == "fit-left-half"
+        with poses.view_camera(model, data, i, o.cameras, left_half=half) as fit, \
+                codes.view_code(model, data, i, o.appearance):
             row, res, normal_name, skip = scoring.score_view(
                 model, data, i, ids[i], scene, ck, cfg.renderer.eval_chunk_rays, o.normal_mask, asset,
-                right_half=o.appearance == "fit-left-half")
-        per_view.append(row)
+                right_half=half)
+        per_view.append({**row, **fit})
         if normal_name is not None:
             normal_names.add(normal_name)
         if skip is not None:
@@ -179,6 +190,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     metrics = scoring.mean_scores(per_view, o.split, baked=asset is not None)
     protocol = record.views_record(scene, cfg, o.split, n, held_out, o.eval_downscale, background)
     protocol["cameras"] = codes.cameras_record(model, o.split, rd.read_refined_cameras() is not None)
+    protocol["cameras"]["scored_views"] = poses.view_cameras_record(o.cameras, o.appearance == "fit-left-half")
     protocol["appearance"] = codes.appearance_record(model, o.appearance)
     if asset is not None:
         protocol["baked"] = record.baked_record(o.baked, asset.manifest)
