@@ -13,6 +13,8 @@ from typing import Any
 
 import torch
 
+from anisdf.tasks.evaluate.view_fit import fit_to_view
+
 PROTOCOLS = ("mean", "fit-left-half")
 FIT_STEPS = 64
 FIT_RAYS = 1024
@@ -25,24 +27,9 @@ def fit_left_half(model, data, i: int, seed: int = 0) -> torch.Tensor:
     batch, (h, w) = data.image(i)
     left = ((torch.arange(h * w, device=batch.rgb.device) % w) < w // 2).nonzero()[:, 0]
     code = model.image_codes.mean().detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([code], lr=FIT_LR)
-    gen = torch.Generator().manual_seed(seed)
-    frozen = [p for p in model.parameters() if p.requires_grad]
-    for p in frozen:
-        p.requires_grad_(False)
-    try:
-        for _ in range(FIT_STEPS):
-            pick = left[torch.randint(left.numel(), (min(FIT_RAYS, left.numel()),), generator=gen).to(left.device)]
-            b = batch[pick]
-            with torch.enable_grad():
-                out = model.render_rays(b.origins, b.directions, b.background, codes=code.expand(len(b), -1))
-                loss = torch.mean((out.rgb.float() - b.rgb) ** 2)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
+    fit_to_view(model, batch, left, [code],
+                lambda b: model.render_rays(b.origins, b.directions, b.background, codes=code.expand(len(b), -1)),
+                FIT_STEPS, FIT_RAYS, FIT_LR, seed)
     return code.detach()
 
 

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from anisdf.models.per_image import CameraRefinement
+from anisdf.tasks.evaluate.view_fit import fit_to_view
 
 PROTOCOLS = ("given", "fit")
 FIT_STEPS = 150
@@ -41,29 +42,10 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
     index = int(data.indices[i])
     pose = data.cameras.c2w[index : index + 1]
     cam = CameraRefinement(pose, torch.ones(1, dtype=torch.bool), anchor=False).to(pose.device)
-    opt = torch.optim.Adam(cam.parameters(), lr=FIT_LR)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda k: FIT_FINAL + (1 - FIT_FINAL) * 0.5 * (1 + np.cos(np.pi * k / FIT_STEPS)))
-    gen = torch.Generator().manual_seed(seed)
-    frozen = [p for p in model.parameters() if p.requires_grad]
-    for p in frozen:
-        p.requires_grad_(False)
-    try:
-        for _ in range(FIT_STEPS):
-            pick = pixels[torch.randint(pixels.numel(), (min(FIT_RAYS, pixels.numel()),), generator=gen)
-                          .to(pixels.device)]
-            b = batch[pick]
-            with torch.enable_grad():
-                o, d = cam(b.origins, b.directions, torch.zeros(len(b), dtype=torch.long, device=pose.device))
-                out = model.render_rays(o, d, b.background)
-                loss = torch.mean((out.rgb.float() - b.rgb) ** 2)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
+    zero = torch.zeros(FIT_RAYS, dtype=torch.long, device=pose.device)
+    fit_to_view(model, batch, pixels, list(cam.parameters()),
+                lambda b: model.render_rays(*cam(b.origins, b.directions, zero[: len(b)]), b.background),
+                FIT_STEPS, FIT_RAYS, FIT_LR, seed, final_lr=FIT_FINAL)
     return cam.refined_poses()[0]
 
 

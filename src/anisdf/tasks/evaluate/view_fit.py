@@ -1,0 +1,38 @@
+"""Fitting a few numbers of one scored view to its image with the scene frozen (an appearance code, a camera
+correction): the loop both protocols share."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+
+def fit_to_view(model, batch, pixels: torch.Tensor, params: list[torch.Tensor], render: Callable, steps: int,
+                rays: int, lr: float, seed: int, final_lr: float = 1.0) -> None:
+    """Adam on ``params`` (learning rate ``lr``, cosine to ``final_lr`` times it; 1: constant) for ``steps`` steps
+    of ``rays`` pixels drawn at random from ``pixels`` (indices into ``batch``, a view's rays), minimising the mean
+    squared error of ``render(rays) -> RenderOutput`` against their colours. The model's own parameters are frozen
+    meanwhile and given back their gradients after."""
+    opt = torch.optim.Adam(params, lr=lr)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda k: final_lr + (1 - final_lr) * 0.5 * (1 + np.cos(np.pi * k / steps)))
+    gen = torch.Generator().manual_seed(seed)
+    frozen = [p for p in model.parameters() if p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        for _ in range(steps):
+            pick = pixels[torch.randint(pixels.numel(), (min(rays, pixels.numel()),), generator=gen)
+                          .to(pixels.device)]
+            b = batch[pick]
+            with torch.enable_grad():
+                loss = torch.mean((render(b).rgb.float() - b.rgb) ** 2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
