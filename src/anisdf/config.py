@@ -127,10 +127,9 @@ class AppearanceConfig:
 class CamerasConfig:
     refine: Literal["auto", "on", "off"] = "off"
     """Learn a small rigid correction (rotation + translation, an se(3) vector, zero at the start) of every training
-    camera together with the scene, for poses that structure-from-motion got slightly wrong. Off by default: on
-    dtu_scan65 with cameras 1 deg / 1% off it lifts the test PSNR from 19.8 to 24.8 dB, but on exact cameras it costs
-    0.1 dB scored from fitted test poses (``anisdf eval --cameras fit``) and 3.2 dB from the given ones, the scene
-    having moved with its cameras (benchmarks/RESULTS.md). auto: on for real photos
+    camera together with the scene, for poses that structure-from-motion got slightly wrong. Off by default: it lifts
+    dtu_scan65 with cameras 1 deg off from 19.8 to 24.8 dB, but costs exact cameras 0.1 dB scored from fitted test
+    poses (``anisdf eval --cameras fit``) and 3.2 dB from the given ones (benchmarks/RESULTS.md). auto: on for photos
     (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes (nerf-synthetic / Blender
     format), whose cameras are exact. Test cameras are never corrected."""
     lr: float = 1e-3
