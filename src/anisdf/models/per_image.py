@@ -173,6 +173,14 @@ def normalised_poses(c2w: np.ndarray, to_world: np.ndarray) -> Tensor:
     return torch.from_numpy(out[:, :3, :4]).float()
 
 
+def pose_changes(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[N] rotation angles (deg) and centre moves between camera-to-world matrices ``a`` and ``b`` ([N,3,4] or
+    [N,4,4])."""
+    rel = np.einsum("nji,njk->nik", a[:, :3, :3], b[:, :3, :3])
+    angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    return angle, np.linalg.norm(b[:, :3, 3] - a[:, :3, 3], axis=-1)
+
+
 def image_key(path: Path, root: Path) -> str:
     """How refined_cameras.json names an image: its path inside the dataset folder (its file name when outside)."""
     try:
@@ -188,9 +196,7 @@ def refined_cameras_record(refinement: CameraRefinement, image_paths: list[Path]
     idx = refinement.trained.nonzero()[:, 0].cpu()
     original = dataset_poses(refinement.poses[idx], to_world)
     refined = dataset_poses(refinement.refined_poses()[idx], to_world)
-    rel = np.einsum("nji,njk->nik", original[:, :3, :3], refined[:, :3, :3])
-    angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
-    move = np.linalg.norm(refined[:, :3, 3] - original[:, :3, 3], axis=-1)
+    angle, move = pose_changes(original, refined)
     cameras = [{"image": image_key(image_paths[i], root), "index": int(i), "rotation_deg": round(float(a), 6),
                 "translation": float(m), "original": o.tolist(), "refined": r.tolist()}
                for i, a, m, o, r in zip(idx.tolist(), angle, move, original, refined, strict=True)]

@@ -17,10 +17,9 @@ import dataclasses
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
 import torch
 
-from anisdf.models.per_image import CameraRefinement
+from anisdf.models.per_image import CameraRefinement, pose_changes
 from anisdf.tasks.evaluate.view_fit import fit_to_view
 
 PROTOCOLS = ("given", "fit")
@@ -49,13 +48,6 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
     return cam.refined_poses()[0]
 
 
-def pose_change(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
-    """Rotation (deg) and centre move between camera-to-world matrices ``a`` and ``b`` ([3,4])."""
-    rel = a[:, :3].T.double() @ b[:, :3].double()
-    cos = float(((torch.trace(rel) - 1.0) / 2.0).clamp(-1.0, 1.0))
-    return float(np.degrees(np.arccos(cos))), float((a[:, 3] - b[:, 3]).norm())
-
-
 @contextlib.contextmanager
 def view_camera(model, data, i: int, protocol: str, left_half: bool = False) -> Iterator[dict[str, float]]:
     """Render view ``i`` from the camera ``protocol`` gives it. Yields the per-view record: for ``fit``, the fitted
@@ -70,9 +62,9 @@ def view_camera(model, data, i: int, protocol: str, left_half: bool = False) -> 
     data.cameras, data.scene.cameras = (dataclasses.replace(c, c2w=c.c2w.index_put((torch.tensor([index]),),
                                                                                   fitted.to(c.c2w)[None]))
                                         for c in (given, scene_given))
-    deg, move = pose_change(given.c2w[index], fitted)
+    deg, move = pose_changes(*(p[None].double().cpu().numpy() for p in (given.c2w[index], fitted)))
     try:
-        yield {"camera_fit_deg": deg, "camera_fit_move": move}
+        yield {"camera_fit_deg": float(deg[0]), "camera_fit_move": float(move[0])}
     finally:
         data.cameras, data.scene.cameras = given, scene_given
 
