@@ -174,8 +174,8 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     images: list[Path] = []
     normal_names: set[str] = set()
     skipped: list[dict[str, str]] = []
+    half = o.appearance == "fit-left-half"
     for i in tqdm(range(n), desc=f"eval {o.split}", unit="view", disable=not o.progress):
-        half = o.appearance == "fit-left-half"
         with poses.view_camera(model, data, i, o.cameras, left_half=half) as fit, \
                 codes.view_code(model, data, i, o.appearance):
             row, res, normal_name, skip = scoring.score_view(
@@ -190,7 +190,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     metrics = scoring.mean_scores(per_view, o.split, baked=asset is not None)
     protocol = record.views_record(scene, cfg, o.split, n, held_out, o.eval_downscale, background)
     protocol["cameras"] = codes.cameras_record(model, o.split, rd.read_refined_cameras() is not None)
-    protocol["cameras"]["scored_views"] = poses.view_cameras_record(o.cameras, o.appearance == "fit-left-half")
+    protocol["cameras"]["scored_views"] = poses.view_cameras_record(o.cameras, half)
     protocol["appearance"] = codes.appearance_record(model, o.appearance)
     if asset is not None:
         protocol["baked"] = record.baked_record(o.baked, asset.manifest)
