@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from anisdf.tasks.evaluate.view_fit import fit_to_view
+from anisdf.tasks.evaluate.view_fit import fit_to_view, view_pixels
 
 PROTOCOLS = ("mean", "fit-left-half")
 FIT_STEPS = 64
@@ -25,7 +25,7 @@ def fit_left_half(model, data, i: int, seed: int = 0) -> torch.Tensor:
     """[dim] appearance code of view ``i`` of ``data`` fitted (Adam, :data:`FIT_STEPS` steps of :data:`FIT_RAYS`
     random pixels, MSE) to the left half of its image (columns ``< W // 2``), starting from the mean code."""
     batch, (h, w) = data.image(i)
-    left = ((torch.arange(h * w, device=batch.rgb.device) % w) < w // 2).nonzero()[:, 0]
+    left = view_pixels(h, w, batch.rgb.device, left_half=True)
     code = model.image_codes.mean().detach().clone().requires_grad_(True)
     fit_to_view(model, batch, left, [code],
                 lambda b: model.render_rays(b.origins, b.directions, b.background, codes=code.expand(len(b), -1)),

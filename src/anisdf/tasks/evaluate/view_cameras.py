@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from anisdf.models.per_image import CameraRefinement, pose_changes
-from anisdf.tasks.evaluate.view_fit import fit_to_view
+from anisdf.tasks.evaluate.view_fit import fit_to_view, view_pixels
 
 PROTOCOLS = ("given", "fit")
 FIT_STEPS = 150
@@ -35,15 +35,12 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
     random pixels (of the left half, columns ``< W // 2``, when ``left_half``), mean squared error, the scene
     frozen."""
     batch, (h, w) = data.image(i)
-    pixels = torch.arange(h * w, device=batch.rgb.device)
-    if left_half:
-        pixels = pixels[(pixels % w) < w // 2]
+    pixels = view_pixels(h, w, batch.rgb.device, left_half)
     index = int(data.indices[i])
     pose = data.cameras.c2w[index : index + 1]
     cam = CameraRefinement(pose, torch.ones(1, dtype=torch.bool), anchor=False).to(pose.device)
-    zero = torch.zeros(FIT_RAYS, dtype=torch.long, device=pose.device)
     fit_to_view(model, batch, pixels, list(cam.parameters()),
-                lambda b: model.render_rays(*cam(b.origins, b.directions, zero[: len(b)]), b.background),
+                lambda b: model.render_rays(*cam(b.origins, b.directions, torch.zeros_like(b.cam_idx)), b.background),
                 FIT_STEPS, FIT_RAYS, FIT_LR, seed, final_lr=FIT_FINAL)
     return cam.refined_poses()[0]
 
@@ -76,5 +73,6 @@ def view_cameras_record(protocol: str, left_half: bool) -> dict[str, Any]:
     return {"protocol": "fit",
             "views": f"rendered from the dataset's pose corrected by an se(3) fitted to the view's "
                      f"{'left half' if left_half else 'image'} with the scene frozen (test-time pose optimisation, "
-                     f"BARF): Adam lr {FIT_LR} cosine to a tenth, {FIT_STEPS} steps of {FIT_RAYS} random pixels, MSE; "
+                     f"BARF): Adam lr {FIT_LR} cosine to {FIT_FINAL:g} of it, {FIT_STEPS} steps of {FIT_RAYS} "
+                     "random pixels, MSE; "
                      "per_view camera_fit_deg / camera_fit_move (normalised units) give each correction"}

@@ -9,6 +9,12 @@ import numpy as np
 import torch
 
 
+def view_pixels(h: int, w: int, device: torch.device, left_half: bool = False) -> torch.Tensor:
+    """Indices of a view's ``h x w`` pixels (row-major), or of its left half (columns ``< w // 2``) only."""
+    pixels = torch.arange(h * w, device=device)
+    return pixels[(pixels % w) < w // 2] if left_half else pixels
+
+
 def fit_to_view(model, batch, pixels: torch.Tensor, params: list[torch.Tensor], render: Callable, steps: int,
                 rays: int, lr: float, seed: int, final_lr: float = 1.0) -> None:
     """Adam on ``params`` (learning rate ``lr``, cosine to ``final_lr`` times it; 1: constant) for ``steps`` steps
