@@ -8,6 +8,7 @@ kernel source and arithmetic as on CUDA, so these tests check its math in CI; on
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 from collections.abc import Callable, Iterator
@@ -51,8 +52,8 @@ def triton_ops() -> object:
 def _triton_encode(kernel_ops: object) -> Callable:
     device = "cuda" if torch.cuda.is_available() else "cpu"
 
-    def encode(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
-        return ops.apply_kernels(x.to(device), table.to(device), spec, kernel_ops).cpu()
+    def encode(x: torch.Tensor, table: torch.Tensor, spec: GridSpec, n_levels: int | None = None) -> torch.Tensor:
+        return ops.apply_kernels(x.to(device), table.to(device), spec, kernel_ops, n_levels).cpu()
     # Compiled for a GPU, Triton contracts multiply-adds into FMAs and the table gradient's atomics add in any
     # order, so sums of thousands of terms (point gradients scale with the resolution, 2048 at the finest
     # level) differ from the CPU reference by a few float32 ulps more than the interpreter does. On an H100
@@ -161,6 +162,32 @@ def test_eikonal_double_backward_matches_reference(fast, spec: GridSpec) -> None
         _assert_close(a, b, 5e-5 * getattr(fast, "slack", 1.0), name)
 
 
+def test_first_levels_only_match_reference(fast) -> None:
+    """Levels not yet switched on are not looked up (``n_levels``): the first levels' values, the normals and the
+    eikonal gradients match the reference's, and the table rows of the other levels get no gradient."""
+    spec, n = GridSpec(), 3
+    gen = torch.Generator().manual_seed(11)
+    x = _points(1500, spec, gen)
+    table = 0.5 * torch.randn(spec.n_params, spec.features_per_level, generator=gen)
+    ref_fn = functools.partial(_first_levels, hash_encode_reference, n=n)
+    with _one_thread():
+        ref = _eikonal_grads(ref_fn, x, table, spec)
+    got = _eikonal_grads(functools.partial(_first_levels, fast, n=n), x, table, spec)
+    for name, a, b in zip(("normal", "grad table", "grad x", "grad mlp"), got, ref, strict=True):
+        assert float(b.abs().max()) > 0, name
+        _assert_close(a, b, 5e-5 * getattr(fast, "slack", 1.0), name)
+    assert torch.all(got[1][spec.offsets[n]:] == 0)
+    with _one_thread():
+        full = hash_encode_reference(x, table, spec)
+    torch.testing.assert_close(fast(x, table, spec, n), full[:, : n * spec.features_per_level], atol=2e-5, rtol=0)
+
+
+def _first_levels(encode, x: torch.Tensor, table: torch.Tensor, spec: GridSpec, n: int) -> torch.Tensor:
+    """The first ``n`` levels' features, zero-padded to the full width (as the SDF branches read them)."""
+    out = encode(x, table, spec, n)
+    return torch.nn.functional.pad(out, (0, spec.output_dim - out.shape[1]))
+
+
 def _through_table_gradient(encode, x, table, spec, w, u, with_x: bool) -> list[torch.Tensor]:
     xx = x.clone().requires_grad_(True)
     tt = table.clone().requires_grad_(True)
@@ -251,9 +278,9 @@ def test_hash_grid_module_uses_the_kernel(kernel, monkeypatch) -> None:
     used: list[object] = []
     real_apply = ops.apply_kernels
 
-    def spy(x, table, spec, kernel_ops):
+    def spy(x, table, spec, kernel_ops, n_levels=None):
         used.append(kernel_ops)
-        return real_apply(x, table, spec, kernel_ops)
+        return real_apply(x, table, spec, kernel_ops, n_levels)
 
     monkeypatch.setattr(hef, "apply_kernels", spy)
     x = torch.rand(300, 3) * 1.2 - 0.1

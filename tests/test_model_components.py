@@ -230,8 +230,8 @@ def test_level_m_moves_the_split_between_the_grids(m):
 
 
 def test_loaded_level_state_is_the_one_the_field_uses():
-    """The branches keep their active level count as a Python int and a 0/1 weight per feature (no GPU read per
-    query); loading a state dict must update both, or a resumed run would query the wrong levels."""
+    """The branches keep their active level count as a Python int (no GPU read per query); loading a state dict
+    must update it, or a resumed run would query the wrong levels."""
     cfg = load_config(None, ["geometry.log2_hashmap_size=12", "geometry.n_levels=8", "geometry.coarse_levels=6",
                              "geometry.coarse_start_levels=2",
                              "geometry.max_resolution=64", "geometry.encoding_backend=torch"])
@@ -244,9 +244,11 @@ def test_loaded_level_state_is_the_one_the_field_uses():
     for bt, bf in zip(trained.branches, fresh.branches, strict=True):
         assert bt.n_active == min(bt.start_levels + 1, bt.n_levels)
         assert bf.n_active == bt.n_active == int(bf.active_levels)
-        assert torch.equal(bf.level_weights, bt.level_weights)
-        assert int(bf.level_weights.sum()) == bf.n_active * bf.features
     x = torch.rand(64, 3) - 0.5
+    for b in fresh.branches:  # the features of levels not yet switched on read zero, the others do not
+        enc, k = b.encode(x), b.n_active * b.features
+        assert enc.shape[1] == b.n_levels * b.features
+        assert torch.all(enc[:, k:] == 0) and torch.all(enc[:, :k].abs().sum(0) > 0)
     assert torch.equal(trained(x)[0], fresh(x)[0])
 
 

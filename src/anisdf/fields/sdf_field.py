@@ -67,10 +67,8 @@ class SDFBranch(nn.Module):
         self.start_levels = min(start_levels, spec.n_levels)
         self.fast = cfg.encoding_backend != "torch"  # the compiled softplus too; "torch" is the pure reference
         self.register_buffer("active_levels", torch.tensor(self.start_levels), persistent=True)
-        # the same count as a Python int and as a 0/1 weight per encoding feature, changed only by set_step: reading
-        # the buffer would wait for the GPU, and rebuilding the weights costs a few kernels per SDF query
+        # the same count as a Python int, changed only by set_step: reading the buffer would wait for the GPU
         self.n_active = self.start_levels
-        self.register_buffer("level_weights", self._weights(self.n_active), persistent=False)
         self.register_load_state_dict_post_hook(lambda module, _keys: module._sync_levels())
         dims = [3 + spec.output_dim] + [cfg.hidden_dim] * cfg.n_hidden + [1 + cfg.feature_dim]
         layers = []
@@ -80,13 +78,9 @@ class SDFBranch(nn.Module):
             layers.append(weight_norm(lin))
         self.layers = nn.ModuleList(layers)
 
-    def _weights(self, n_active: int) -> Tensor:
-        return (torch.arange(self.n_levels) < n_active).float().repeat_interleave(self.features)
-
     def _sync_levels(self) -> None:
-        """After loading a state dict: the Python count and the weights follow the loaded buffer."""
+        """After loading a state dict: the Python count follows the loaded buffer."""
         self.n_active = int(self.active_levels)
-        self.level_weights.copy_(self._weights(self.n_active))
 
     def set_step(self, step: int, cfg: GeometryConfig) -> None:
         extra = max(0, (step - cfg.level_start_step) // max(cfg.level_every, 1))
@@ -94,11 +88,12 @@ class SDFBranch(nn.Module):
         if n != self.n_active:
             self.n_active = n
             self.active_levels.fill_(n)
-            self.level_weights.copy_(self._weights(n))
 
     def encode(self, x: Tensor) -> Tensor:
-        """Hash-grid features of ``x`` in [-1, 1]^3; levels not yet switched on read as zero."""
-        return self.grid((x + 1.0) * 0.5) * self.level_weights
+        """Hash-grid features of ``x`` in [-1, 1]^3; levels not yet switched on read as zero (and are not looked
+        up: early in training a third of the encoding's work)."""
+        enc = self.grid((x + 1.0) * 0.5, self.n_active)
+        return F.pad(enc, (0, (self.n_levels - self.n_active) * self.features))
 
     def forward(self, x: Tensor) -> Tensor:
         """``x`` in [-1, 1]^3 -> [N, 1 + feature_dim] (SDF first)."""

@@ -126,8 +126,10 @@ def kernel_supports(x: Tensor, table: Tensor, spec: GridSpec) -> bool:
     return kernel_inputs(x, table, spec) and fast_backend(x.device) is not None
 
 
-def fast_hash_encode(x: Tensor, table: Tensor, spec: GridSpec, required: bool = False) -> Tensor:
-    """Encode ``x`` in ``[0, 1]^3`` ``[N, 3]`` to ``[N, L * F]``; same contract as :func:`hash_encode_reference`.
+def fast_hash_encode(x: Tensor, table: Tensor, spec: GridSpec, n_levels: int | None = None,
+                     required: bool = False) -> Tensor:
+    """Encode ``x`` in ``[0, 1]^3`` ``[N, 3]`` to ``[N, L * F]`` (``n_levels``: the first levels only); same contract
+    as :func:`hash_encode_reference`.
 
     ``required=True`` (``geometry.encoding_backend=fast``) raises :class:`AnisdfError` where no fast kernel
     exists for the device, instead of using the reference.
@@ -141,8 +143,8 @@ def fast_hash_encode(x: Tensor, table: Tensor, spec: GridSpec, required: bool = 
     if ops is None:
         if required:
             _require(x.device)
-        return hash_encode_reference(x, table, spec)
-    return apply_kernels(x, table, spec, ops)
+        return hash_encode_reference(x, table, spec, n_levels)
+    return apply_kernels(x, table, spec, ops, n_levels)
 
 
 def _require(device: torch.device) -> None:
@@ -190,5 +192,6 @@ class HashGrid(nn.Module):
     def output_dim(self) -> int:
         return self.spec.output_dim
 
-    def forward(self, x: Tensor) -> Tensor:
-        return self._encode(x.clamp(0.0, 1.0), self.table, self.spec)
+    def forward(self, x: Tensor, n_levels: int | None = None) -> Tensor:
+        """Features ``[N, L * F]`` of ``x`` in ``[0, 1]^3``; ``n_levels``: of the first levels only."""
+        return self._encode(x.clamp(0.0, 1.0), self.table, self.spec, n_levels)

@@ -105,9 +105,13 @@ class _Encode(torch.autograd.Function):
         return gx, gt, None, None, None
 
 
-def apply_kernels(x: Tensor, table: Tensor, spec: GridSpec, ops: Any) -> Tensor:
-    """Encode ``x`` [N, 3] with the backend module ``ops`` (differentiable twice, see the module docstring)."""
-    return _Encode.apply(x.contiguous(), table, level_table(spec, x.device), spec.log2_hashmap_size, ops)
+def apply_kernels(x: Tensor, table: Tensor, spec: GridSpec, ops: Any, n_levels: int | None = None) -> Tensor:
+    """Encode ``x`` [N, 3] with the backend module ``ops`` (differentiable twice, see the module docstring); the
+    first ``n_levels`` levels only when given (the kernels take the level rows they are handed)."""
+    levels = level_table(spec, x.device)
+    if n_levels is not None and n_levels < spec.n_levels:
+        levels = levels[:n_levels]
+    return _Encode.apply(x.contiguous(), table, levels, spec.log2_hashmap_size, ops)
 
 
 def kernel_inputs(x: Tensor, table: Tensor, spec: GridSpec) -> bool:
