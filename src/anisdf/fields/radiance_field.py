@@ -12,12 +12,12 @@ Ablations: ``appearance.kind=pe`` replaces the ASG features by a positional enco
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from anisdf.config import AppearanceConfig
 from anisdf.fields.asg import asg_encode, asg_frames
 from anisdf.fields.encodings import positional_encoding, sh_encoding
+from anisdf.fields.softplus import softplus
 
 
 def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
@@ -31,11 +31,13 @@ def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
 
 
 class RadianceField(nn.Module):
-    def __init__(self, cfg: AppearanceConfig, feature_dim: int, code_dim: int = 0) -> None:
+    def __init__(self, cfg: AppearanceConfig, feature_dim: int, code_dim: int = 0, fast: bool = True) -> None:
         """``code_dim`` > 0: the view and reflection heads also take a per-image appearance code of that size
-        (NeRF-W's appearance embedding; ``appearance.embedding``)."""
+        (NeRF-W's appearance embedding; ``appearance.embedding``). ``fast``: the ASG sharpnesses' softplus by the
+        compiled kernel where it applies (:func:`anisdf.fields.softplus.softplus`), else PyTorch's."""
         super().__init__()
         self.cfg = cfg
+        self.fast = fast
         geo_in = feature_dim + 3
         self.view_mlp = mlp(3 + geo_in + cfg.sh_degree**2 + code_dim, cfg.view_hidden, cfg.view_layers, 3)
         if cfg.kind == "view":
@@ -66,7 +68,8 @@ class RadianceField(nn.Module):
         n_dot_v = -d_dot_n
         if self.cfg.kind == "blend":
             par = self.par_mlp(geo).view(-1, self.n_lobes, 4)
-            lam, mu = F.softplus(par[..., 0]), F.softplus(par[..., 1])
+            lam_mu = softplus(par[..., :2], 1.0, self.fast)  # one pass over both (a strided view)
+            lam, mu = lam_mu[..., 0], lam_mu[..., 1]
             f_asg = asg_encode(refl, self.frames, lam, mu, par[..., 2:])
             ref_in = torch.cat([f_asg, refl, n_dot_v, *codes], dim=-1)
         else:

@@ -95,7 +95,8 @@ class AniSDFModel(nn.Module):
         self.radius = r.radius
         self.geometry = SDFField(cfg.geometry, radius=r.radius)
         code_dim = cfg.appearance.embedding_dim if image_codes and trained is not None else 0
-        self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim)
+        self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim,
+                                        fast=cfg.geometry.encoding_backend != "torch")
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
         self.grid = OccupancyGrid(r.grid_resolution, r.radius, band=math.log(4.0 / r.occupancy_threshold))
         # renderer.grid_refine: the grid training rays march, refined at each update (a buffer: exact resume); never
