@@ -93,6 +93,8 @@ class SDFBranch(nn.Module):
         """Hash-grid features of ``x`` in [-1, 1]^3; levels not yet switched on read as zero (and are not looked
         up: early in training a third of the encoding's work)."""
         enc = self.grid((x + 1.0) * 0.5, self.n_active)
+        if self.n_active == self.n_levels:  # every level on (most of training): no padding, no copy
+            return enc
         return F.pad(enc, (0, (self.n_levels - self.n_active) * self.features))
 
     def forward(self, x: Tensor) -> Tensor:
