@@ -425,6 +425,19 @@ def test_ray_occupancy_query_finds_the_cells_of_the_point_query():
     assert (got != want).sum() <= 1e-4 * inside.sum()
 
 
+def test_sphere_intersection_has_finite_gradients_for_rays_that_graze_or_miss():
+    """Rays of refined cameras carry gradients through the background's sphere exit: a ray that grazes the sphere
+    (discriminant exactly 0) or misses it gets finite gradients, and hits keep the closed-form distances."""
+    o = torch.tensor([[1.0, 0.0, -3.0], [2.0, 0.0, -3.0], [0.2, 0.1, -3.0]], dtype=torch.float64, requires_grad=True)
+    d = torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64, requires_grad=True)
+    near, far = sphere_intersect(o, d, 1.0)
+    (near.sum() + far.sum()).backward()
+    assert torch.isfinite(o.grad).all() and torch.isfinite(d.grad).all()
+    half = math.sqrt(1.0 - 0.05)
+    assert far[0] == 0.0 and far[1] == 0.0  # tangent and miss: no crossing
+    assert near[2].item() == pytest.approx(3.0 - half) and far[2].item() == pytest.approx(3.0 + half)
+
+
 def test_losses_behave():
     n = F.normalize(torch.randn(100, 3), dim=-1)
     assert L.eikonal_loss(n * 2) == pytest.approx(1.0)

@@ -40,9 +40,12 @@ def sphere_intersect(origins: Tensor, dirs: Tensor, radius: float) -> tuple[Tens
     b = (origins * dirs).sum(-1)
     c = (origins * origins).sum(-1) - radius * radius
     disc = b * b - c
-    sq = disc.clamp_min(0).sqrt()
+    hit = disc > 0
+    # the square root only where the ray crosses the sphere: at 0 its derivative is infinite, and rays of refined
+    # cameras carry gradients (0 * inf would make them NaN)
+    sq = torch.where(hit, torch.where(hit, disc, torch.ones_like(disc)).sqrt(), torch.zeros_like(disc))
     near = (-b - sq).clamp_min(0.0)
-    far = torch.where(disc > 0, -b + sq, torch.zeros_like(b))
+    far = torch.where(hit, -b + sq, torch.zeros_like(b))
     return near, far
 
 
