@@ -55,11 +55,11 @@ class EvalOptions:
     appearance: str = option("mean", "runs with per-image appearance codes (appearance.embedding): render each view "
                              "with the mean code, or fit a code to the left half of the image and score the right "
                              "half (NeRF-W)", choices=APPEARANCE_PROTOCOLS)
-    cameras: str = option("given", "render each view from the dataset's pose, or from that pose corrected by an se(3) "
-                          "fitted to the view's image with the scene frozen (test-time pose optimisation, BARF: for "
-                          "runs with cameras.refine, whose frame the photos fix only up to a small rigid motion, and "
-                          "real captures whose held-out poses are as noisy as the training ones)",
-                          choices=CAMERA_PROTOCOLS)
+    cameras: str = option("auto", "render each view from the dataset's pose (given), or from that pose corrected by an "
+                          "se(3) fitted to the view's image with the scene frozen (fit: test-time pose optimisation, "
+                          "BARF; for runs with cameras.refine, whose frame the photos fix only up to a small rigid "
+                          "motion, and real captures whose held-out poses are as noisy as the training ones); auto: "
+                          "fit when the run refined its cameras, else given", choices=CAMERA_PROTOCOLS)
     relight: Path | None = option(None, "also relight the PBR asset of `anisdf materials` under each light of FOLDER "
                                   "(LIGHT/r_i.png, LIGHT_world.exr) and score it (relight: psnr, ssim per light; "
                                   "material errors where FOLDER/material.json gives the truth)", Path,
@@ -153,6 +153,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     dev = pick_device(o.device or "auto")
     gt = load_mesh(o.gt_mesh) if o.gt_mesh is not None else None  # fail early on a bad reference mesh
     cfg, model, ck = load_run(run, dev)
+    cameras = poses.resolve_protocol(o.cameras, model.cameras is not None)
     step = int(ck["state"]["step"])
     mesh_info = mesh_for_eval(run, step, requested, o.re_extract) if o.gt_mesh is not None else None
     asset = scoring.baked_for_eval(o.baked, step) if o.baked is not None else None
@@ -176,7 +177,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     skipped: list[dict[str, str]] = []
     half = o.appearance == "fit-left-half"
     for i in tqdm(range(n), desc=f"eval {o.split}", unit="view", disable=not o.progress):
-        with poses.view_camera(model, data, i, o.cameras, left_half=half) as fit, \
+        with poses.view_camera(model, data, i, cameras, left_half=half) as fit, \
                 codes.view_code(model, data, i, o.appearance):
             row, res, normal_name, skip = scoring.score_view(
                 model, data, i, ids[i], scene, ck, cfg.renderer.eval_chunk_rays, o.normal_mask, asset,
@@ -190,7 +191,7 @@ def evaluate(run: Path, options: EvalOptions | None = None, **changes: Any) -> d
     metrics = scoring.mean_scores(per_view, o.split, baked=asset is not None)
     protocol = record.views_record(scene, cfg, o.split, n, held_out, o.eval_downscale, background)
     protocol["cameras"] = codes.cameras_record(model, o.split, rd.read_refined_cameras() is not None)
-    protocol["cameras"]["scored_views"] = poses.view_cameras_record(o.cameras, half)
+    protocol["cameras"]["scored_views"] = poses.view_cameras_record(cameras, half, requested=o.cameras)
     protocol["appearance"] = codes.appearance_record(model, o.appearance)
     if asset is not None:
         protocol["baked"] = record.baked_record(o.baked, asset.manifest)

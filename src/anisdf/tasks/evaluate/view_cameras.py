@@ -22,7 +22,7 @@ import torch
 from anisdf.models.per_image import CameraRefinement, pose_changes
 from anisdf.tasks.evaluate.view_fit import fit_to_view, view_pixels
 
-PROTOCOLS = ("given", "fit")
+PROTOCOLS = ("auto", "given", "fit")
 FIT_STEPS = 150
 FIT_RAYS = 2048
 FIT_LR = 2e-3
@@ -66,11 +66,22 @@ def view_camera(model, data, i: int, protocol: str, left_half: bool = False) -> 
         data.cameras, data.scene.cameras = given, scene_given
 
 
-def view_cameras_record(protocol: str, left_half: bool) -> dict[str, Any]:
-    """eval.json's ``protocol.cameras.scored_views``."""
+def resolve_protocol(requested: str, refined: bool) -> str:
+    """The protocol ``--cameras`` asks for; ``auto``: ``fit`` for a run that refined its training cameras (its scene
+    sits in a frame the photos fix only up to a small rigid motion), else ``given``."""
+    if requested not in PROTOCOLS:
+        raise ValueError(f"camera protocol must be one of {', '.join(PROTOCOLS)}, got {requested!r}")
+    if requested != "auto":
+        return requested
+    return "fit" if refined else "given"
+
+
+def view_cameras_record(protocol: str, left_half: bool, requested: str | None = None) -> dict[str, Any]:
+    """eval.json's ``protocol.cameras.scored_views`` (``requested``: what ``--cameras`` said, when ``auto``)."""
+    asked = {"requested": "auto: fit for runs with refined cameras, else given"} if requested == "auto" else {}
     if protocol == "given":
-        return {"protocol": "given", "views": "rendered from the dataset's poses"}
-    return {"protocol": "fit",
+        return {"protocol": "given", "views": "rendered from the dataset's poses", **asked}
+    return {"protocol": "fit", **asked,
             "views": f"rendered from the dataset's pose corrected by an se(3) fitted to the view's "
                      f"{'left half' if left_half else 'image'} with the scene frozen (test-time pose optimisation, "
                      f"BARF): Adam lr {FIT_LR} cosine to {FIT_FINAL:g} of it, {FIT_STEPS} steps of {FIT_RAYS} "
