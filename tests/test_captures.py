@@ -22,7 +22,7 @@ from anisdf.tasks.loading import load_run, scene_for_run
 from anisdf.training.trainer import Trainer, build_model
 
 AUTO = ["cameras.refine=auto", "appearance.embedding=auto"]
-"""Both switches following the dataset's format (their default is off)."""
+"""Both switches following the dataset's format (the default of cameras.refine; appearance.embedding is off)."""
 
 
 def _hat(xi: np.ndarray) -> np.ndarray:
@@ -105,14 +105,17 @@ def test_the_anchor_takes_out_the_motion_common_to_all_cameras_and_keeps_the_res
 
 @pytest.mark.parametrize("fmt", ["nerf-synthetic", "neus", "llff", "colmap", "instant-ngp"])
 def test_switches_are_off_for_rendered_scenes_and_on_for_photos(tmp_path, fmt):
-    """auto follows the format; the default (off until measured to help) builds neither part."""
+    """auto follows the format; by default photos get camera refinement (measured to help) and no appearance codes
+    (measured not to), and the paper's photo presets keep the dataset's cameras."""
     write_test_scene(tmp_path / fmt, fmt)
     scene = load_scene(tmp_path / fmt)
     photos = fmt != "nerf-synthetic"
     model = build_model(load_config("cpu-quick", [*TINY, *AUTO]), scene, torch.device("cpu"))
     assert (model.cameras is not None, model.image_codes is not None) == (photos, photos)
     default = build_model(load_config("cpu-quick", TINY), scene, torch.device("cpu"))
-    assert default.cameras is None and default.image_codes is None
+    assert (default.cameras is not None) == photos and default.image_codes is None
+    for paper in ("dtu", "mipnerf360"):
+        assert load_config(paper).cameras.refine == "off"
     off = build_model(load_config("cpu-quick", [*TINY, "cameras.refine=off", "appearance.embedding=false"]), scene,
                       torch.device("cpu"))
     assert off.cameras is None and off.image_codes is None
@@ -223,7 +226,8 @@ def test_fit_left_half_scores_the_right_halves_of_a_run_without_codes_too(tmp_pa
 def test_a_test_view_camera_fitted_to_its_image_comes_back_toward_the_true_pose(tmp_path, monkeypatch):
     """eval --cameras fit: a view whose pose is turned by 3 deg, with the model's own render from the true pose as its
     image, gets a fitted pose closer to the true one and a lower image error; the dataset's pose is put back after.
-    eval.json names the protocol and each view's correction."""
+    eval.json names the protocol and each view's correction. The default (auto) fits only runs with refined
+    cameras."""
     import dataclasses
 
     from anisdf.cli import main
@@ -278,3 +282,10 @@ def test_a_test_view_camera_fitted_to_its_image_comes_back_toward_the_true_pose(
     result = evaluate(tmp_path / "r", split="test", cameras="fit", max_views=1, progress=False)
     assert result["protocol"]["cameras"]["scored_views"]["protocol"] == "fit"
     assert "camera_fit_deg" in RunDir(tmp_path / "r").read_eval()["per_view"][0]
+    # the default, auto: fit for runs that refined their cameras; this one did not, so its views keep their poses
+    result = evaluate(tmp_path / "r", split="test", max_views=1, progress=False)
+    assert result["protocol"]["cameras"]["scored_views"]["protocol"] == "given"
+    assert result["protocol"]["cameras"]["scored_views"]["requested"].startswith("auto")
+    assert "camera_fit_deg" not in RunDir(tmp_path / "r").read_eval()["per_view"][0]
+    assert [view_cameras.resolve_protocol(p, True) for p in view_cameras.PROTOCOLS] == ["fit", "given", "fit"]
+    assert [view_cameras.resolve_protocol(p, False) for p in view_cameras.PROTOCOLS] == ["given", "given", "fit"]
