@@ -267,12 +267,17 @@ def test_a_test_view_camera_fitted_to_its_image_comes_back_toward_the_true_pose(
         with torch.no_grad():
             return float(((model.render_rays(o, d, batch.background).rgb - target) ** 2).mean())
 
-    fitted = view_cameras.fit_camera(model, data, 0)
+    fitted, kept = view_cameras.fit_camera(model, data, 0)
+    assert kept
     def turn(pose):
         return float(pose_changes(true[None].numpy(), pose[None].numpy())[0][0])
 
     assert turn(fitted) < 0.6 * turn(turned)
     assert error(fitted) < 0.5 * error(turned)
+    monkeypatch.setattr(view_cameras, "FIT_LR", 0.5)  # a fit that runs away is not kept: the given pose stays
+    wild, kept = view_cameras.fit_camera(model, data, 0)
+    assert not kept and torch.equal(wild, turned)
+    monkeypatch.setattr(view_cameras, "FIT_LR", 5e-3)
     assert all(p.requires_grad for p in model.parameters())
     monkeypatch.setattr(view_cameras, "FIT_STEPS", 4)
     with view_cameras.view_camera(model, data, 0, "fit") as record:
