@@ -104,6 +104,6 @@ def view_cameras_record(protocol: str, left_half: bool, requested: str | None = 
             "views": f"rendered from the dataset's pose corrected by an se(3) fitted to the view's "
                      f"{'left half' if left_half else 'image'} with the scene frozen (test-time pose optimisation, "
                      f"BARF): Adam lr {FIT_LR} cosine to {FIT_FINAL:g} of it, {FIT_STEPS} steps of {FIT_RAYS} "
-                     f"random pixels, MSE; kept only when it lowers the error on a fixed draw of {CHECK_RAYS} pixels, else "
-                     "the given pose (per_view camera_fit_kept); per_view camera_fit_deg / camera_fit_move "
-                     "(normalised units) give each correction"}
+                     f"random pixels, MSE; kept only when it lowers the error on a fixed draw of {CHECK_RAYS} "
+                     "pixels, else the given pose (per_view camera_fit_kept); per_view camera_fit_deg / "
+                     "camera_fit_move (normalised units) give each correction"}
