@@ -17,16 +17,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
+from cpu_quick_runs import train_and_score
 
 from anisdf.data.dataparsers import parse_dataset
-from anisdf.run_dir import RunDir
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -79,23 +78,9 @@ def reexpose(data: Path, out: Path, stops: float, tint: float, seed: int) -> lis
 def run_one(data: Path, out: Path, steps: int, codes: str, overrides: list[str], protocols: list[str],
             eval_downscale: float) -> dict[str, dict]:
     """Train (unless done) and score a run under each appearance protocol (``RUN/eval_appearance_<p>.json``)."""
-    from anisdf.tasks.evaluate import evaluate
-    from anisdf.tasks.train import train
-
-    rd = RunDir(out)
-    if rd.status() != "done":
-        if out.exists():
-            shutil.rmtree(out)
-        train(data, out, preset="cpu-quick", max_steps=steps,
-              overrides=[*overrides, f"appearance.embedding={codes}"], progress=False)
-    scores = {}
-    for protocol in protocols:
-        kept = out / f"eval_appearance_{protocol}.json"
-        if not kept.is_file():
-            evaluate(out, split="test", appearance=protocol, eval_downscale=eval_downscale, progress=False)
-            shutil.copyfile(rd.eval_json, kept)
-        scores[protocol] = json.loads(kept.read_text())
-    return scores
+    evals = {f"appearance_{p}": {"appearance": p, "eval_downscale": eval_downscale} for p in protocols}
+    scores = train_and_score(data, out, steps, [*overrides, f"appearance.embedding={codes}"], evals)
+    return {p: scores[f"appearance_{p}"] for p in protocols}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,12 +22,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from cpu_quick_runs import train_and_score
 from scipy.spatial.transform import Rotation
 
 from anisdf.data.dataparsers import parse_dataset
@@ -108,23 +108,9 @@ def run_one(data: Path, out: Path, steps: int, refine: str, eval_downscale: floa
             overrides: list[str]) -> dict[str, dict]:
     """Train (unless done) and score a run under each camera protocol; returns ``{protocol: eval.json}`` (kept as
     ``RUN/eval_cameras_<protocol>.json``)."""
-    from anisdf.tasks.evaluate import evaluate
-    from anisdf.tasks.train import train
-
-    rd = RunDir(out)
-    if rd.status() != "done":
-        if out.exists():
-            shutil.rmtree(out)
-        train(data, out, preset="cpu-quick", max_steps=steps, overrides=[*overrides, f"cameras.refine={refine}"],
-              progress=False)
-    scores = {}
-    for protocol in ("given", "fit"):
-        kept = out / f"eval_cameras_{protocol}.json"
-        if not kept.is_file():
-            evaluate(out, split="test", eval_downscale=eval_downscale, cameras=protocol, progress=False)
-            shutil.copyfile(rd.eval_json, kept)
-        scores[protocol] = json.loads(kept.read_text())
-    return scores
+    evals = {f"cameras_{p}": {"cameras": p, "eval_downscale": eval_downscale} for p in ("given", "fit")}
+    scores = train_and_score(data, out, steps, [*overrides, f"cameras.refine={refine}"], evals)
+    return {p: scores[f"cameras_{p}"] for p in ("given", "fit")}
 
 
 def main(argv: list[str] | None = None) -> int:
