@@ -126,21 +126,14 @@ class AppearanceConfig:
 @dataclass
 class CamerasConfig:
     refine: Literal["auto", "on", "off"] = "auto"
-    """Learn a small rigid correction (rotation + translation, an se(3) vector, zero at the start) of every training
-    camera together with the scene, for poses that structure-from-motion got slightly wrong. auto (default): on for
-    photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and process-data scenes), off for rendered scenes (nerf-synthetic /
-    Blender format), whose cameras are exact; the presets that reproduce the paper's tables on photos (dtu,
-    mipnerf360) keep the dataset's cameras, as the paper does. On dtu_scan65 with cameras 1 deg off it lifts 1500
-    cpu-quick steps from 19.8 to 25.0 dB, 0.2 dB short of the clean cameras (three seeds), and on the exact cameras
-    it costs nothing (25.32 against 25.16 dB), both scored from test poses fitted to their images (``anisdf eval``
-    does so for runs with refined cameras); from the given test poses a refined run reads about 4 dB lower, because
-    the photos fix the scene only up to a small rigid motion (benchmarks/RESULTS.md). Test cameras are never
-    corrected."""
+    """Learn a small rigid correction (an se(3) vector, zero at the start) of every training camera with the scene.
+    auto: on for photos (NeuS/DTU, LLFF, COLMAP, instant-ngp, process-data), off for rendered scenes, whose cameras
+    are exact; the dtu and mipnerf360 presets keep the dataset's cameras, as the paper does. dtu_scan65 with cameras
+    1 deg off: 19.8 -> 25.0 dB, 0.2 dB short of clean cameras; exact cameras: no cost (eval fits the test poses of
+    refined runs; benchmarks/RESULTS.md). Test cameras are never corrected."""
     lr: float = 5e-4
-    """Learning rate of the corrections (Adam; it follows the scene's warm-up and decay factor). On dtu_scan65 with
-    cameras 1 deg off, 5e-4 from step 100 came within 0.21 dB of the clean cameras (three seeds), 1e-3 from step
-    200 within 0.7 dB, 2e-3 further off (benchmarks/RESULTS.md): Adam's steps jitter the cameras, and a smaller rate
-    jitters less while starting earlier keeps the time to converge."""
+    """Learning rate of the corrections (Adam, with the scene's warm-up and decay): 1e-3 and 2e-3 jittered the
+    cameras more and ended further from the clean cameras' score (benchmarks/RESULTS.md)."""
     start_step: int = 100
     """The corrections are frozen at zero until this schedule step, while the scene takes a first shape."""
     reg: float = 1e-2
