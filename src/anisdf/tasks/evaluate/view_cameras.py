@@ -20,7 +20,7 @@ from typing import Any
 import torch
 
 from anisdf.models.per_image import CameraRefinement, pose_changes
-from anisdf.tasks.evaluate.view_fit import fit_to_view, view_pixels
+from anisdf.tasks.evaluate.view_fit import fit_to_view, photometric_error, view_pixels
 
 PROTOCOLS = ("auto", "given", "fit")
 FIT_STEPS = 150
@@ -48,20 +48,16 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
 
     gen = torch.Generator().manual_seed(seed + 1_000_003)  # not the fit's own draws
     check = batch[pixels[torch.randperm(pixels.numel(), generator=gen)[:CHECK_RAYS].to(pixels.device)]]
-    before = _error(render, check)
+    with torch.no_grad():
+        before = float(photometric_error(render, check))
     fit_to_view(model, batch, pixels, list(cam.parameters()), render, FIT_STEPS, FIT_RAYS, FIT_LR, seed,
                 final_lr=FIT_FINAL)
-    kept = _error(render, check) < before
+    with torch.no_grad():
+        kept = float(photometric_error(render, check)) < before
     if not kept:
         with torch.no_grad():
             cam.delta.zero_()
     return cam.refined_poses()[0], kept
-
-
-@torch.no_grad()
-def _error(render, batch) -> float:
-    """Mean squared error of ``render(batch)`` against the batch's colours."""
-    return float(torch.mean((render(batch).rgb.float() - batch.rgb) ** 2))
 
 
 @contextlib.contextmanager
@@ -88,9 +84,7 @@ def view_camera(model, data, i: int, protocol: str, left_half: bool = False) -> 
 def resolve_protocol(requested: str, refined: bool) -> str:
     """The protocol ``--cameras`` asks for; ``auto``: ``fit`` for a run that refined its training cameras (its scene
     sits in a frame the photos fix only up to a small rigid motion), else ``given``."""
-    if requested not in PROTOCOLS:
-        raise ValueError(f"camera protocol must be one of {', '.join(PROTOCOLS)}, got {requested!r}")
-    if requested != "auto":
+    if requested != "auto":  # eval's option check has refused anything outside PROTOCOLS
         return requested
     return "fit" if refined else "given"
 

@@ -15,6 +15,11 @@ def view_pixels(h: int, w: int, device: torch.device, left_half: bool = False) -
     return pixels[(pixels % w) < w // 2] if left_half else pixels
 
 
+def photometric_error(render: Callable, batch) -> torch.Tensor:
+    """Mean squared error of ``render(batch) -> RenderOutput`` against the batch's colours: what a fit minimises."""
+    return torch.mean((render(batch).rgb.float() - batch.rgb) ** 2)
+
+
 def fit_to_view(model, batch, pixels: torch.Tensor, params: list[torch.Tensor], render: Callable, steps: int,
                 rays: int, lr: float, seed: int, final_lr: float = 1.0) -> None:
     """Adam on ``params`` (learning rate ``lr``, cosine to ``final_lr`` times it; 1: constant) for ``steps`` steps
@@ -34,7 +39,7 @@ def fit_to_view(model, batch, pixels: torch.Tensor, params: list[torch.Tensor], 
                           .to(pixels.device)]
             b = batch[pick]
             with torch.enable_grad():
-                loss = torch.mean((render(b).rgb.float() - b.rgb) ** 2)
+                loss = photometric_error(render, b)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
