@@ -149,7 +149,7 @@ def test_resume_is_exact_with_refinement_and_codes_and_the_poses_are_written_and
     """A colmap capture (both switches auto, so on): 4 steps straight equal 2 + resume + 2, bit for bit;
     refined_cameras.json holds the trained cameras in the dataset's frame, scene_for_run renders them from it, eval
     records the protocol."""
-    from anisdf.tasks.evaluate import appearance, evaluate
+    from anisdf.tasks.evaluate import appearance, evaluate, view_cameras
 
     truth = write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
     scene = load_scene(tmp_path / "s")
@@ -187,6 +187,7 @@ def test_resume_is_exact_with_refinement_and_codes_and_the_poses_are_written_and
     test = scene.splits["test"]
     assert torch.equal(used.cameras.c2w[test], scene.cameras.c2w[test])  # no correction for test cameras
     monkeypatch.setattr(appearance, "FIT_STEPS", 4)
+    monkeypatch.setattr(view_cameras, "FIT_STEPS", 4)
     result = evaluate(tmp_path / "b", split="test", appearance="fit-left-half", progress=False)
     assert result["protocol"]["appearance"]["protocol"] == "fit-left-half"
     assert result["protocol"]["appearance"]["scored"].startswith("right half")
@@ -214,8 +215,9 @@ def test_fit_left_half_scores_the_right_halves_of_a_run_without_codes_too(tmp_pa
     from anisdf.tasks.evaluate import evaluate
 
     write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
+    # the cameras as given: eval then scores from the given poses, with no pose fit (not the subject here)
     assert main(["train", str(tmp_path / "s"), "--out", str(tmp_path / "r"), "--preset", "cpu-quick",
-                 "--max-steps", "4", "--no-progress", *TINY]) == 0
+                 "--max-steps", "4", "--no-progress", *TINY, "cameras.refine=off"]) == 0
     whole = evaluate(tmp_path / "r", split="test", progress=False)
     half = evaluate(tmp_path / "r", split="test", appearance="fit-left-half", progress=False)
     assert whole["protocol"]["appearance"]["scored"] == "whole image"
