@@ -76,8 +76,8 @@ def main() -> int:
     def sdf_mlps(inputs, mlp) -> None:  # noqa: ANN001
         loss = 0.0
         for h, weights, biases in inputs:
-            out, grad = mlp(h, weights, biases)
-            loss = loss + L.eikonal_loss(grad[:, :3]) + out.sum()
+            out, hidden, grad = mlp(h, weights, biases)
+            loss = loss + L.eikonal_loss(grad[:, :3]) + out.sum() + hidden.sum()
         loss.backward()
 
     print(f"forward and backward, {n} points on {dev} (torch {torch.__version__})")

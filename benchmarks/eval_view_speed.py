@@ -40,7 +40,8 @@ def main() -> None:
     data = RayDataset(scene, "test", device=torch.device("cpu"), background=eval_background(scene))
     n = min(args.views, len(data))
     counted = {"queries": 0}
-    for name in ("distance", "sdf", "with_gradient"):
+    # with_gradient asks query (older code: with_gradient alone)
+    for name in ("distance", "sdf", "query" if hasattr(model.geometry, "query") else "with_gradient"):
         fn = getattr(model.geometry, name)
 
         def counting(x, *a, _fn=fn, **k):

@@ -66,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         model_module.march = timed("march", march)
         m.geometry.sdf = timed("SDF, no grad (pruning, grid)", m.geometry.sdf)  # older code's route
         m.geometry.distance = timed("SDF, no grad (pruning, grid)", m.geometry.distance)
-        m.geometry.with_gradient = timed("SDF with gradient", m.geometry.with_gradient)
+        route = "query" if hasattr(m.geometry, "query") else "with_gradient"  # older code: with_gradient
+        setattr(m.geometry, route, timed("SDF with gradient", getattr(m.geometry, route)))
         m.color_fn = timed("colour heads", m.color_fn)
         m.losses = timed("losses (with curvature's SDF)", m.losses)
         tr.opt.step = timed("optimiser", tr.opt.step)

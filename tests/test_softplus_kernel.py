@@ -69,9 +69,9 @@ def test_sdf_mlp_with_kernel_matches_reference(kernel) -> None:
     h = torch.randn(3000, 27, generator=g) * 0.5
 
     def run(fast: bool) -> list[torch.Tensor]:
-        out, grad = mlp_with_input_grad(h, ws, bs, fast)
-        loss = out.square().mean() + (grad.norm(dim=-1) - 1).square().mean()
-        return [out, grad, *torch.autograd.grad(loss, [*ws, *bs])]
+        out, hidden, grad = mlp_with_input_grad(h, ws, bs, fast)
+        loss = out.square().mean() + hidden.sin().mean() + (grad.norm(dim=-1) - 1).square().mean()
+        return [out, hidden, grad, *torch.autograd.grad(loss, [*ws, *bs])]
 
     for got, want in zip(run(True), run(False), strict=True):
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5 * float(want.detach().abs().max()))

@@ -107,7 +107,8 @@ def surface_points(model, x: Tensor, chunk: int = 1 << 16) -> tuple[Tensor, Tens
     eps = model.fd_eps()
     for s in range(0, len(x), chunk):
         p = x[s:s + chunk]
-        sdf, _, g = model.geometry.with_gradient(p, create_graph=False, fd_eps=eps)
+        q = model.geometry.query(p, create_graph=False, fd_eps=eps)
+        sdf, g = q.sdf, q.grad
         step = sdf[:, None] * g / (g * g).sum(-1, keepdim=True).clamp_min(1e-12)
         p = p - step.clamp(-0.05, 0.05)
         _, feat, g = model.geometry.with_gradient(p, create_graph=False, fd_eps=eps)

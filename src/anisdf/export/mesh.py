@@ -343,7 +343,7 @@ def sdf_normals(model, points: torch.Tensor, chunk: int = 1 << 16) -> torch.Tens
     """Unit SDF gradients of ``model`` at ``points`` [M, 3] (normalised frame)."""
     out = []
     for s in range(0, len(points), chunk):
-        _, _, g = model.geometry.with_gradient(points[s:s + chunk], create_graph=False, fd_eps=model.fd_eps())
+        g = model.geometry.query(points[s:s + chunk], create_graph=False, fd_eps=model.fd_eps()).grad
         out.append(F.normalize(g, dim=-1))
     return torch.cat(out) if out else points.new_zeros(0, 3)
 

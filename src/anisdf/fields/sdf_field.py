@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -33,8 +34,10 @@ BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
 
 
 def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor], fast: bool = True
-                        ) -> tuple[Tensor, Tensor]:
-    """Softplus MLP ``out = W_L sp(... sp(W_1 h + b_1) ...) + b_L`` [N, O] and ``d out[:, 0] / d h`` [N, D].
+                        ) -> tuple[Tensor, Tensor, Tensor]:
+    """The first output ``out_0 = w_L sp(... sp(W_1 h + b_1) ...) + b_L[0]`` [N] of a softplus MLP, its last hidden
+    activation ``a`` [N, H] and ``d out_0 / d h`` [N, D]. The other outputs (the geometry feature) are
+    ``F.linear(a, W_L[1:], b_L[1:])``, computed by the caller for the rows that need them (:class:`SDFQuery`).
 
     The gradient is the chain rule written out: ``g = (((w_L * s_{L-1}) W_{L-1} * s_{L-2}) ... * s_1) W_1`` with
     ``w_L`` the first row of ``W_L`` and ``s_i = sigmoid(beta z_i)`` the slope of softplus at layer ``i``'s
@@ -43,17 +46,15 @@ def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor], 
     and its slope come from one pass (:func:`anisdf.fields.softplus.softplus_slope`; ``fast=False``: PyTorch's).
     """
     slopes = []
-    for i, (w, b) in enumerate(zip(weights, biases, strict=True)):
-        z = F.linear(h, w, b)
-        if i == len(weights) - 1:
-            h = z
-        else:
-            h, s = softplus_slope(z, BETA, fast)
-            slopes.append(s)
-    g = weights[-1][0].expand(h.shape[0], -1)
+    for w, b in zip(weights[:-1], biases[:-1], strict=True):
+        h, s = softplus_slope(F.linear(h, w, b), BETA, fast)
+        slopes.append(s)
+    w_sdf = weights[-1][0]
+    out0 = torch.addmv(biases[-1][0], h, w_sdf)
+    g = w_sdf.expand(h.shape[0], -1)
     for w, s in zip(reversed(weights[:-1]), reversed(slopes), strict=True):
         g = (g * s) @ w
-    return h, g
+    return out0, h, g
 
 
 class SDFBranch(nn.Module):
@@ -107,21 +108,28 @@ class SDFBranch(nn.Module):
         return h
 
     def forward_with_grad(self, x: Tensor, create_graph: bool,
-                          mlp: Callable[..., tuple[Tensor, Tensor]] = mlp_with_input_grad) -> tuple[Tensor, Tensor]:
-        """:meth:`forward` and the gradient of its SDF output w.r.t. ``x`` [N, 3]: the MLP's input gradient in
-        closed form (``mlp``, eager or compiled), then its grid part carried back through the encoding.
+                          mlp: Callable[..., tuple[Tensor, Tensor, Tensor]] = mlp_with_input_grad
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+        """The SDF output [N], the last hidden activation [N, H] (:meth:`feature` of its rows gives the feature) and
+        the SDF output's gradient w.r.t. ``x`` [N, 3]: the MLP's input gradient in closed form (``mlp``, eager or
+        compiled), then its grid part carried back through the encoding.
 
-        With ``create_graph`` both outputs are differentiable w.r.t. the parameters (training), else neither is.
+        With ``create_graph`` the outputs are differentiable w.r.t. the parameters (training), else none is.
         Positions are sample points, constants: no gradient flows back to ``x``.
         """
         with torch.enable_grad():
             xg = x.detach().requires_grad_(True)
             enc = self.encode(xg)
         with torch.set_grad_enabled(create_graph):
-            out, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
-                         [lay.bias for lay in self.layers], self.fast)
+            out0, hidden, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
+                                  [lay.bias for lay in self.layers], self.fast)
             (g_enc,) = torch.autograd.grad(enc, xg, g[:, 3:], create_graph=create_graph)
-            return out, g[:, :3] + g_enc
+            return out0, hidden, g[:, :3] + g_enc
+
+    def feature(self, hidden: Tensor) -> Tensor:
+        """The feature outputs (all but the SDF) of the last layer, from its input ``hidden`` [N, H]."""
+        last = self.layers[-1]
+        return F.linear(hidden, last.weight[1:], last.bias[1:])
 
 
 def _geometric_init(lin: nn.Linear, i: int, last: int, radius: float, out_scale: float) -> None:
@@ -141,6 +149,20 @@ def _geometric_init(lin: nn.Linear, i: int, last: int, radius: float, out_scale:
             lin.bias.zero_()
             if i == 0:
                 lin.weight[:, 3:].zero_()
+
+
+@dataclass
+class SDFQuery:
+    """The SDF [N] and its gradient [N, 3] at N points, with the geometry feature on demand: the renderer needs it
+    only where a sample is visible, and the last layer's feature rows are most of that layer's work."""
+
+    sdf: Tensor
+    grad: Tensor
+    feature_of: Callable[[Tensor | None], Tensor]
+    """Rows (indices, or None for all) -> their feature [n, feature_dim], fused over the branches (Eq. 6)."""
+
+    def feature(self, rows: Tensor | None = None) -> Tensor:
+        return self.feature_of(rows)
 
 
 class SDFField(nn.Module):
@@ -214,7 +236,12 @@ class SDFField(nn.Module):
 
     def with_gradient(self, x: Tensor, create_graph: bool, fd_eps: float | None = None
                       ) -> tuple[Tensor, Tensor, Tensor]:
-        """SDF, feature and the SDF gradient (unnormalised normal) at ``x``.
+        """SDF, feature and the SDF gradient (unnormalised normal) at ``x``: :meth:`query` with every feature row."""
+        q = self.query(x, create_graph, fd_eps)
+        return q.sdf, q.feature(), q.grad
+
+    def query(self, x: Tensor, create_graph: bool, fd_eps: float | None = None) -> SDFQuery:
+        """SDF and its gradient at ``x``, the feature on demand (:class:`SDFQuery`).
 
         ``geometry.normals=analytic``: the exact gradient through the network (:meth:`SDFBranch.forward_with_grad`;
         ``d sdf / d x = d out_0 / d x_n`` since ``sdf = radius out_0(x / radius)``), differentiable w.r.t. the
@@ -225,13 +252,20 @@ class SDFField(nn.Module):
         autograd and 4 queries instead of 7 for central differences.
         """
         if self.cfg.normals == "finite_difference":
-            return self._finite_difference(self.forward, x, create_graph, fd_eps)
+            sdf, feat, grad = self._finite_difference(self.forward, x, create_graph, fd_eps)
+            return SDFQuery(sdf, grad, lambda rows: feat if rows is None else feat[rows])
         with torch.autocast(x.device.type, enabled=False):
             xn = self._normalised(x)
-            outs, grads = zip(*(b.forward_with_grad(xn, create_graph, self.mlp_fn) for b in self.branches),
-                              strict=True)
-            out, grad = self._fuse(list(outs)), self._fuse(list(grads))
-        return out[:, 0] * self.radius, out[:, 1:], grad
+            outs, hidden, grads = zip(*(b.forward_with_grad(xn, create_graph, self.mlp_fn) for b in self.branches),
+                                      strict=True)
+            sdf, grad = self._fuse(list(outs)), self._fuse(list(grads))
+
+        def feature_of(rows: Tensor | None) -> Tensor:
+            with torch.autocast(x.device.type, enabled=False), torch.set_grad_enabled(create_graph):
+                return self._fuse([b.feature(h if rows is None else h.index_select(0, rows))
+                                   for b, h in zip(self.branches, hidden, strict=True)])
+
+        return SDFQuery(sdf * self.radius, grad, feature_of)
 
     def branch_gradient(self, x: Tensor, branch: int, create_graph: bool, fd_eps: float | None = None) -> Tensor:
         """The SDF gradient at ``x`` of one branch alone (0: the coarse grid; with ``kind=single`` the one grid),
@@ -245,7 +279,7 @@ class SDFField(nn.Module):
                 return out[:, 0] * self.radius, out[:, 1:]
             return self._finite_difference(one_branch, x, create_graph, fd_eps)[2]
         with torch.autocast(x.device.type, enabled=False):
-            return b.forward_with_grad(self._normalised(x), create_graph, self.mlp_fn)[1]
+            return b.forward_with_grad(self._normalised(x), create_graph, self.mlp_fn)[2]
 
     def _finite_difference(self, fn: Callable[[Tensor], tuple[Tensor, Tensor]], x: Tensor, create_graph: bool,
                            fd_eps: float | None) -> tuple[Tensor, Tensor, Tensor]:

@@ -252,7 +252,8 @@ class AniSDFModel(nn.Module):
         # samples of a ray in a fixed order where indexing's (a parallel scatter on CPU) does not: exact resume
         d = dirs.index_select(0, s.ray_idx)
         x = origins.index_select(0, s.ray_idx) + d * s.t[:, None]
-        sdf, feat, grad = self.geometry.with_gradient(x, create_graph=train, fd_eps=self.fd_eps())
+        q = self.geometry.query(x, create_graph=train, fd_eps=self.fd_eps())
+        sdf, grad = q.sdf, q.grad
         if x.requires_grad:  # rays of refined cameras: the field treats x as a constant, so the SDF's first-order
             # change with the sample point, sdf(x + dx) = sdf + grad . dx, carries the photometric gradient to the poses
             sdf = sdf + (grad.detach() * (x - x.detach())).sum(-1)
@@ -263,7 +264,7 @@ class AniSDFModel(nn.Module):
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
         extra = () if self.image_codes is None else (
             (self.image_codes(None, n_rays) if codes is None else codes).index_select(0, s.ray_idx[vis]),)
-        col_vis = self.color_fn(x[vis] / self.radius, feat[vis], normal[vis], d[vis], *extra)
+        col_vis = self.color_fn(x[vis] / self.radius, q.feature(vis), normal[vis], d[vis], *extra)
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
         opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)
@@ -366,7 +367,7 @@ class AniSDFModel(nn.Module):
         if lc.curvature_target == "coarse":
             g_eps = self.geometry.branch_gradient(x_eps, 0, create_graph=True, fd_eps=self.fd_eps())
         else:
-            _, _, g_eps = self.geometry.with_gradient(x_eps, create_graph=True, fd_eps=self.fd_eps())
+            g_eps = self.geometry.query(x_eps, create_graph=True, fd_eps=self.fd_eps()).grad
         return L.curvature_loss(normal[sel], F.normalize(g_eps, dim=-1), lc.curvature_form)
 
     def curvature_weight(self) -> float:
