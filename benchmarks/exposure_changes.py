@@ -7,9 +7,12 @@ a capture (any format whose images sit in one folder; everything else linked) in
 re-exposed as a camera's auto exposure and white balance would: in linear light, times ``2^u`` with ``u`` uniform in
 ``[-stops, stops]`` and times a per-channel gain ``exp(g)``, ``g`` normal with deviation ``tint`` (a fixed
 ``--seed``), clipped and re-encoded (JPEG quality 98 for JPEG files). The held-out photos are left as they are, so
-every run is scored against the same images. It trains cpu-quick with ``appearance.embedding=off`` and ``on`` and
-scores both under eval's appearance protocols (``--protocols``): the mean code over whole images, and NeRF-W's (a code
-fitted to each test view's left half, the right half scored; a run without codes scores the same right halves).
+every run is scored against the same images; with ``--test-too`` they are re-exposed as well (their own draws, so
+the training photos are the same either way), as every photo of a capture made with auto exposure is. It trains
+cpu-quick with ``appearance.embedding=off``, ``on`` (a code per image that the heads take) and ``affine`` (on, with
+``embedding_kind=affine``: a colour transform per image) and scores them under eval's appearance protocols
+(``--protocols``): the mean code over whole images, and NeRF-W's (a code fitted to each test view's left half, the
+right half scored; a run without codes scores the same right halves).
 Runs already done in ``--work`` are reused.
 """
 
@@ -36,9 +39,9 @@ def linear_to_srgb(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(np.maximum(c, 0.0031308), 1 / 2.4) - 0.055)
 
 
-def reexpose(data: Path, out: Path, stops: float, tint: float, seed: int) -> list[dict]:
-    """``out``: a copy of ``data`` (files linked) whose training images are re-exposed (module doc). Returns each
-    changed image's name, exposure (stops) and channel gains."""
+def reexpose(data: Path, out: Path, stops: float, tint: float, seed: int, test_too: bool = False) -> list[dict]:
+    """``out``: a copy of ``data`` (files linked) whose training images, and with ``test_too`` the others, are
+    re-exposed (module doc). Returns each changed image's name, split, exposure (stops) and channel gains."""
     parsed = parse_dataset(data)
     train = set(parsed.splits["train"])
     folders = {p.parent for p in parsed.image_paths}
@@ -51,16 +54,18 @@ def reexpose(data: Path, out: Path, stops: float, tint: float, seed: int) -> lis
         if entry.resolve() != image_dir.resolve() and not (out / entry.name).exists():
             (out / entry.name).symlink_to(entry.resolve())
     (out / rel).mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
+    rng, rng_test = np.random.default_rng(seed), np.random.default_rng(seed + 1000)
     changes = []
     for i, path in enumerate(parsed.image_paths):
         dst = out / rel / path.name
-        if i not in train:
+        if i not in train and not test_too:
             if not dst.exists():
                 dst.symlink_to(path.resolve())
             continue
-        u, g = float(rng.uniform(-stops, stops)), rng.normal(0.0, tint, size=3)
-        changes.append({"image": path.name, "stops": u, "gains": np.exp(g).round(4).tolist()})
+        r = rng if i in train else rng_test
+        u, g = float(r.uniform(-stops, stops)), r.normal(0.0, tint, size=3)
+        changes.append({"image": path.name, "split": "train" if i in train else "held out", "stops": u,
+                        "gains": np.exp(g).round(4).tolist()})
         if dst.exists():
             continue
         img = iio.imread(path)
@@ -79,7 +84,9 @@ def run_one(data: Path, out: Path, steps: int, codes: str, overrides: list[str],
             eval_downscale: float) -> dict[str, dict]:
     """Train (unless done) and score a run under each appearance protocol (``RUN/eval_appearance_<p>.json``)."""
     evals = {f"appearance_{p}": {"appearance": p, "eval_downscale": eval_downscale} for p in protocols}
-    scores = train_and_score(data, out, steps, [*overrides, f"appearance.embedding={codes}"], evals)
+    switch = (["appearance.embedding=on", "appearance.embedding_kind=affine"] if codes == "affine"
+              else [f"appearance.embedding={codes}"])
+    scores = train_and_score(data, out, steps, [*overrides, *switch], evals)
     return {p: scores[f"appearance_{p}"] for p in protocols}
 
 
@@ -92,14 +99,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stops", type=float, default=1.0, help="exposure changes uniform in +-STOPS")
     ap.add_argument("--tint", type=float, default=0.1, help="deviation of the log channel gains")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--runs", default="off,on", help="appearance.embedding of each run: off, on or both")
+    ap.add_argument("--test-too", action="store_true", help="re-expose the held-out photos as well")
+    ap.add_argument("--runs", default="off,on,affine", help="the runs: appearance.embedding off, on (a code the heads "
+                    "take) or affine (on, with embedding_kind=affine: a colour transform per image)")
     ap.add_argument("--protocols", default="mean,fit-left-half", help="eval's appearance protocols to score")
     ap.add_argument("--eval-downscale", type=float, default=1.0)
     ap.add_argument("--set", nargs="*", default=[], metavar="key=value", help="config overrides of every run")
     a = ap.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="exposure_changes_"))
     changed = work / "data_reexposed"
-    changes = reexpose(a.data, changed, a.stops, a.tint, a.seed)
+    changes = reexpose(a.data, changed, a.stops, a.tint, a.seed, a.test_too)
     (work / "exposures.json").write_text(json.dumps(changes, indent=1) + "\n")
     rows = []
     for codes in a.runs.split(","):
@@ -111,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
                      "psnr_right_half": half.get("psnr", float("nan")),
                      "ssim_right_half": half.get("ssim", float("nan")),
                      "steps": any_eval.get("steps"), "train_seconds": any_eval.get("train_seconds")})
-    print(f"work folder: {work}; {len(changes)} training photos re-exposed by +-{a.stops:g} stops, tint {a.tint:g}")
+    which = "photos" if a.test_too else "training photos"
+    print(f"work folder: {work}; {len(changes)} {which} re-exposed by +-{a.stops:g} stops, tint {a.tint:g}")
     print(f"{'codes':6s} {'PSNR':>7s} {'SSIM':>6s} {'PSNR right half':>15s} {'SSIM':>6s} {'steps':>5s} {'minutes':>7s}")
     for r in rows:
         print(f"{r['codes']:6s} {r['psnr']:7.2f} {r['ssim']:6.3f} {r['psnr_right_half']:15.2f} "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
@@ -16,7 +17,7 @@ from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.data.scene import capture_switch
 from anisdf.fields.radiance_field import RadianceField
-from anisdf.models.per_image import CameraRefinement, pose_changes, se3_exp
+from anisdf.models.per_image import CameraRefinement, colour_affine, pose_changes, se3_exp
 from anisdf.run_dir import RunDir
 from anisdf.tasks.loading import load_run, scene_for_run
 from anisdf.training.trainer import Trainer, build_model
@@ -139,6 +140,42 @@ def test_without_codes_the_radiance_field_is_the_plain_one():
     codes = RadianceField(cfg, 15, code_dim=8)
     out = codes(x, f, n, d, torch.randn(64, 8))
     assert out["rgb"].shape == (64, 3) and torch.isfinite(out["rgb"]).all()
+
+
+def test_colour_affine_is_the_identity_at_zero_and_leaves_empty_rays_empty():
+    c = torch.rand(5, 3) * torch.tensor([1.0, 1.0, 1.0, 0.5, 0.0])[:, None]
+    coverage = torch.tensor([1.0, 1.0, 1.0, 0.5, 0.0])
+    assert torch.equal(colour_affine(c, torch.zeros(5, 12), coverage), c)
+    a = torch.zeros(5, 12)
+    a[:, [0, 4, 8]] = torch.tensor([1.0, -0.5, 0.0])  # red doubled, green halved
+    a[:, 11] = 0.2  # blue lifted where the ray sees the scene
+    want = c * torch.tensor([2.0, 0.5, 1.0]) + torch.stack([0 * coverage, 0 * coverage, 0.2 * coverage], -1)
+    torch.testing.assert_close(colour_affine(c, a, coverage), want)
+    assert torch.equal(colour_affine(c, a, coverage)[4], torch.zeros(3))
+
+
+def test_a_colour_transform_per_image_learns_each_photos_exposure(tmp_path):
+    """appearance.embedding_kind=affine on photos re-exposed by known gains: the heads take no code, and the transform
+    each training image learns brightens the dark photos and darkens the bright ones."""
+    truth = write_test_scene(tmp_path / "s", "nerf-synthetic", n_images=9, width=24, height=16)
+    scene = load_scene(tmp_path / "s")
+    train = scene.splits["train"]
+    gains = np.linspace(0.6, 1.4, len(train))
+    for i, g in zip(train, gains, strict=True):  # each training photo exposed by its own gain (RGB, not alpha)
+        img = iio.imread(truth.image_paths[i]).astype(np.float64)
+        img[..., :3] = np.clip(img[..., :3] * g, 0, 255)
+        iio.imwrite(truth.image_paths[i], np.round(img).astype(np.uint8))
+    scene = load_scene(tmp_path / "s")
+    cfg = load_config("cpu-quick", [*TINY, "appearance.embedding=on", "appearance.embedding_kind=affine"])
+    tr = Trainer(cfg, scene, tmp_path / "r", torch.device("cpu"), progress=False)
+    model = tr.model
+    assert model.colour_affine and model.image_codes.codes.shape == (9, 12)
+    assert model.appearance.view_mlp[0].in_features == RadianceField(cfg.appearance, 15).view_mlp[0].in_features
+    for _ in range(80):
+        tr.train_step()
+    learned = model.image_codes.codes.detach()[train][:, [0, 4, 8]].mean(1).numpy()  # the mean diagonal of M
+    assert np.corrcoef(learned, gains)[0, 1] > 0.9, (learned, gains)
+    assert learned[-1] > learned[0]
 
 
 def _state(tr: Trainer) -> dict[str, torch.Tensor]:

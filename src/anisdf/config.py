@@ -113,24 +113,24 @@ class AppearanceConfig:
     ref_layers: int = 2
     pe_frequencies: int = 6
     embedding: Literal["auto", "on", "off"] = "off"
-    """A learned code per training image that the radiance heads take as an extra input (NeRF-W's appearance
-    embedding), which absorbs what changes from photo to photo: auto exposure, white balance, lighting. Off by default
-    until measured to help (with camera refinement, auto read 18.1 dB against 24.8 dB on dtu_scan65's test views in
-    10 cpu-quick minutes: benchmarks/RESULTS.md). auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp and
-    process-data scenes), off for rendered scenes (nerf-synthetic / Blender format), whose images share one exposure.
-    Views with no trained code (test views, orbits, exports) use the mean of the training images' codes."""
+    """Something learned per training image that absorbs what changes from photo to photo (auto exposure, white
+    balance, lighting), of kind ``embedding_kind``. auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp,
+    process-data), off for rendered scenes. Off by default until measured to help (benchmarks/RESULTS.md). Views
+    without their own (test views, orbits, exports) use the training images' mean."""
+    embedding_kind: Literal["code", "affine"] = "code"
+    """code: a code the radiance heads take as an extra input (NeRF-W); affine: a colour transform of the image's
+    rendering, ``c' = c + M c + b`` (12 numbers, zero at the start): exposure and white balance, nothing else."""
     embedding_dim: int = 16
-    """Size of the per-image appearance code."""
+    """Size of the code (``embedding_kind=code``)."""
 
 
 @dataclass
 class CamerasConfig:
     refine: Literal["auto", "on", "off"] = "auto"
     """Learn a small rigid correction (an se(3) vector, zero at the start) of every training camera with the scene.
-    auto: on for photos (NeuS/DTU, LLFF, COLMAP, instant-ngp, process-data), off for rendered scenes, whose cameras
-    are exact; the dtu and mipnerf360 presets keep the dataset's cameras, as the paper does. dtu_scan65 with cameras
-    1 deg off: 19.8 -> 25.0 dB, 0.2 dB short of clean cameras; exact cameras: no cost (eval fits the test poses of
-    refined runs; benchmarks/RESULTS.md). Test cameras are never corrected."""
+    auto: on for photos (NeuS/DTU, LLFF, COLMAP, instant-ngp, process-data), off for rendered scenes and in the dtu
+    and mipnerf360 presets, as the paper. dtu_scan65 with cameras 1 deg off: 19.8 -> 25.0 dB, 0.2 dB short of clean
+    cameras (benchmarks/RESULTS.md). Test cameras are never corrected (eval fits those of refined runs)."""
     lr: float = 5e-4
     """Learning rate of the corrections (Adam, with the scene's warm-up and decay): 1e-3 and 2e-3 jittered the
     cameras more and ended further from the clean cameras' score (benchmarks/RESULTS.md)."""

@@ -29,7 +29,7 @@ from anisdf.model_components.neus_renderer import (
 )
 from anisdf.model_components.occupancy_grid import OccupancyGrid
 from anisdf.model_components.ray_marching import march
-from anisdf.models.per_image import CameraRefinement, ImageCodes
+from anisdf.models.per_image import AFFINE_DIM, CameraRefinement, ImageCodes, colour_affine
 
 
 @dataclass
@@ -94,7 +94,10 @@ class AniSDFModel(nn.Module):
         r = cfg.renderer
         self.radius = r.radius
         self.geometry = SDFField(cfg.geometry, radius=r.radius)
-        code_dim = cfg.appearance.embedding_dim if image_codes and trained is not None else 0
+        per_image = image_codes and trained is not None
+        # appearance.embedding_kind: a code the heads read, or a colour transform of each image's rendering
+        self.colour_affine = per_image and cfg.appearance.embedding_kind == "affine"
+        code_dim = cfg.appearance.embedding_dim if per_image and not self.colour_affine else 0
         self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim,
                                         fast=cfg.geometry.encoding_backend != "torch")
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
@@ -116,7 +119,8 @@ class AniSDFModel(nn.Module):
                                if r.background_model == "nerf" else EnvironmentBackground())
         self.cameras = (CameraRefinement(camera_poses, trained, cfg.cameras.anchor)
                         if camera_poses is not None and trained is not None else None)
-        self.image_codes = ImageCodes(trained.shape[0], code_dim, trained) if code_dim else None
+        n_codes = AFFINE_DIM if self.colour_affine else code_dim
+        self.image_codes = ImageCodes(trained.shape[0], n_codes, trained) if n_codes else None
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         # the step as a Python int, which schedules read without waiting for the GPU (the buffer is for checkpoints)
         self.step_int = 0
@@ -262,8 +266,9 @@ class AniSDFModel(nn.Module):
         weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
-        extra = () if self.image_codes is None else (
-            (self.image_codes(None, n_rays) if codes is None else codes).index_select(0, s.ray_idx[vis]),)
+        if self.image_codes is not None and codes is None:
+            codes = self.image_codes(None, n_rays)
+        extra = () if codes is None or self.colour_affine else (codes.index_select(0, s.ray_idx[vis]),)
         col_vis = self.color_fn(x[vis] / self.radius, q.feature(vis), normal[vis], d[vis], *extra)
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
@@ -277,6 +282,10 @@ class AniSDFModel(nn.Module):
         for key, val in col_vis.items():
             if key == "rgb" or not train:
                 out[key] = composite(val, w_vis, r_vis, n_rays)
+        if self.colour_affine:  # the image's exposure and white balance, on what the camera saw of the scene
+            out["rgb"] = colour_affine(out["rgb"], codes, opacity)
+            if self.background is not None:  # a learned background is part of the photo; a given colour is not
+                background = colour_affine(background, codes, torch.ones_like(opacity))
         out["rgb"] = out["rgb"] + (1.0 - opacity[:, None]) * background
         out["opacity"] = opacity
         if not train:
@@ -397,7 +406,7 @@ class AniSDFModel(nn.Module):
     def codes_for(self, cam_idx: Tensor | None, n: int) -> tuple[Tensor, ...]:
         """The appearance codes the radiance field takes for ``n`` rays or points of the images ``cam_idx`` (None:
         the mean code) as a tuple of extra arguments: empty when the model has none."""
-        return () if self.image_codes is None else (self.image_codes(cam_idx, n),)
+        return () if self.image_codes is None or self.colour_affine else (self.image_codes(cam_idx, n),)
 
     def param_groups(self) -> list[dict]:
         """The optimiser's groups: model, variance, and the camera corrections (own learning rate, no weight decay:

@@ -130,9 +130,22 @@ class CameraRefinement(nn.Module):
         return torch.cat([rot @ d_rot, (origin + (rot @ d_t[..., None])[..., 0])[..., None]], dim=-1)
 
 
+AFFINE_DIM = 12
+"""Numbers of a per-image colour transform (``appearance.embedding_kind=affine``): ``M`` row by row, then ``b``."""
+
+
+def colour_affine(c: Tensor, a: Tensor, coverage: Tensor) -> Tensor:
+    """``c + M c + b * coverage`` [B, 3] for premultiplied colours ``c`` [B, 3] of rays whose opacity is ``coverage``
+    [B], ``a`` [B, 12] each ray's image transform (zero: identity). Exposure and white balance scale the light a pixel
+    gathers, so the offset ``b`` grows with the coverage: an empty ray stays empty."""
+    m = a[:, :9].reshape(-1, 3, 3)
+    return c + torch.einsum("bij,bj->bi", m, c) + a[:, 9:] * coverage[:, None]
+
+
 class ImageCodes(nn.Module):
-    """An appearance code per image ([N, dim], zero at the start); images not ``trained`` read the mean code, or
-    ``fixed`` when set (a code fitted to a test view, :mod:`anisdf.tasks.evaluate.appearance`)."""
+    """An appearance code per image ([N, dim], zero at the start; or a colour transform, :func:`colour_affine`);
+    images not ``trained`` read the mean code, or ``fixed`` when set (a code fitted to a test view,
+    :mod:`anisdf.tasks.evaluate.appearance`)."""
 
     def __init__(self, n_images: int, dim: int, trained: Tensor) -> None:
         super().__init__()

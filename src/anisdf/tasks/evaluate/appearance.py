@@ -55,10 +55,12 @@ def appearance_record(model, protocol: str) -> dict[str, Any]:
         return {"codes": "none (appearance.embedding off): one appearance for every view", "protocol": protocol,
                 "scored": "whole image" if protocol == "mean" else
                           "right half (columns >= W // 2) for PSNR and SSIM, as fit-left-half scores a run with codes"}
+    kind = ("a colour transform per training image (appearance.embedding, embedding_kind=affine)"
+            if getattr(model, "colour_affine", False) else "per training image (appearance.embedding)")
     if protocol == "mean":
-        return {"codes": "per training image (appearance.embedding)", "protocol": "mean",
+        return {"codes": kind, "protocol": "mean",
                 "view_code": "the mean of the training images' codes, for every scored view", "scored": "whole image"}
-    return {"codes": "per training image (appearance.embedding)", "protocol": "fit-left-half",
+    return {"codes": kind, "protocol": "fit-left-half",
             "view_code": f"NeRF-W: fitted to the left half (columns < W // 2) of each scored image, the scene frozen: "
                          f"Adam lr {FIT_LR}, {FIT_STEPS} steps of {FIT_RAYS} random pixels, MSE, from the mean code",
             "scored": "right half (columns >= W // 2) for PSNR and SSIM; normal MAE on the whole image"}
