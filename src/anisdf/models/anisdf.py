@@ -55,7 +55,7 @@ class RenderOutput:
     n_samples: int
     """Samples left after the pruning pass (colour and gradients were computed for these)."""
     n_marched: int
-    """Samples the march produced (the cheap SDF-only pruning pass ran on these)."""
+    """Samples the march produced (the cheap SDF-only pruning pass looks at these, front to back)."""
     samples: TrainingSamples | None = None
 
     @property
@@ -85,6 +85,10 @@ late in training: 32k occupied cells of 64^3, 256k children); above it the refin
 
 
 class AniSDFModel(nn.Module):
+    one_pass_pruning: tuple[str, ...] = ("cuda",)
+    """Device types whose training steps prune in one pass over all marched samples: each round of the progressive
+    pass (front to back, 57% fewer SDF queries late in a cpu-quick bunny) reads the selection back from the GPU."""
+
     def __init__(self, cfg: Config, learn_background: bool = False, trained: Tensor | None = None,
                  camera_poses: Tensor | None = None, image_codes: bool = False) -> None:
         """``trained``: [N] bool, which of the scene's N images train; with it, ``camera_poses`` ([N,3,4]) are refined
@@ -239,15 +243,15 @@ class AniSDFModel(nn.Module):
         inv_s = self.variance()
         n_marched = s.n
         if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
-            if train:
+            if train and origins.device.type in self.one_pass_pruning:
                 with torch.no_grad():  # the SDF row alone (no feature): a third of the MLP's work
                     sdf0 = self.geometry.distance(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
                 keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(),
                                       rc.early_stop_eps)
-            else:  # images: front to back, a ray's samples behind its opaque point are never queried
+            else:  # front to back, a ray's samples behind its opaque point are never queried
                 def sdf_at(i: Tensor) -> Tensor:
                     r = s.ray_idx[i]
-                    return self.geometry.distance(origins[r] + dirs[r] * s.t[i, None])
+                    return self.geometry.distance(origins[r].detach() + dirs[r].detach() * s.t[i, None])
 
                 keep, _ = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
                                                      inv_s.detach(), rc.early_stop_eps)
