@@ -253,7 +253,7 @@ class SDFField(nn.Module):
         """
         if self.cfg.normals == "finite_difference":
             sdf, feat, grad = self._finite_difference(self.forward, x, create_graph, fd_eps)
-            return SDFQuery(sdf, grad, lambda rows: feat if rows is None else feat[rows])
+            return SDFQuery(sdf, grad, lambda rows: feat if rows is None else feat.index_select(0, rows))
         with torch.autocast(x.device.type, enabled=False):
             xn = self._normalised(x)
             outs, hidden, grads = zip(*(b.forward_with_grad(xn, create_graph, self.mlp_fn) for b in self.branches),

@@ -251,7 +251,7 @@ class AniSDFModel(nn.Module):
             else:  # front to back, a ray's samples behind its opaque point are never queried
                 def sdf_at(i: Tensor) -> Tensor:
                     r = s.ray_idx[i]
-                    return self.geometry.distance(origins[r].detach() + dirs[r].detach() * s.t[i, None])
+                    return self.geometry.distance(origins[r] + dirs[r] * s.t[i, None])
 
                 keep, _ = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
                                                      inv_s.detach(), rc.early_stop_eps)
