@@ -120,8 +120,8 @@ class AppearanceConfig:
     embedding_kind: Literal["code", "affine"] = "code"
     """code: a code the radiance heads take as an extra input (NeRF-W); affine: a colour transform of the image's
     rendering, ``c' = c + M c + b`` (12 numbers, zero at the start): exposure and white balance, nothing else."""
-    embedding_dim: int = 16
-    """Size of the code (``embedding_kind=code``)."""
+    embedding_dim: int = 16  # the code's size (embedding_kind=code)
+    embedding_lr: float = 1e-2  # the codes' or transforms' learning rate (the scene's warm-up and decay)
 
 
 @dataclass

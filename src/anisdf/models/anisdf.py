@@ -413,11 +413,14 @@ class AniSDFModel(nn.Module):
         return () if self.image_codes is None or self.colour_affine else (self.image_codes(cam_idx, n),)
 
     def param_groups(self) -> list[dict]:
-        """The optimiser's groups: model, variance, and the camera corrections (own learning rate, no weight decay:
-        ``cameras.reg`` holds them) when refined."""
+        """The optimiser's groups: model, variance, the per-image codes (``appearance.embedding_lr``) when learned, and
+        the camera corrections (own learning rate, no weight decay: ``cameras.reg`` holds them) when refined."""
         var = [self.variance.variance]
-        other = [p for n, p in self.named_parameters() if not n.startswith(("variance.", "cameras."))]
+        other = [p for n, p in self.named_parameters() if not n.startswith(("variance.", "cameras.", "image_codes."))]
         groups = [{"params": other, "name": "model"}, {"params": var, "name": "variance"}]
+        if self.image_codes is not None:
+            groups.append({"params": [self.image_codes.codes], "name": "image codes",
+                           "lr": self.cfg.appearance.embedding_lr})
         if self.cameras is not None:
             groups.append({"params": [self.cameras.delta], "name": "cameras", "lr": self.cfg.cameras.lr,
                            "weight_decay": 0.0})
