@@ -12,10 +12,10 @@ from anisdf.run_dir import RunDir
 
 
 def train_and_score(data: Path, out: Path, steps: int, overrides: list[str],
-                    evals: dict[str, dict[str, Any]]) -> dict[str, dict]:
-    """Train ``out`` from ``data`` for ``steps`` cpu-quick steps with ``overrides`` (unless it is done), then for each
-    ``name: eval options`` of ``evals`` run ``anisdf eval`` on the test split, kept as ``RUN/eval_<name>.json``.
-    Returns ``{name: eval.json}``."""
+                    evals: dict[str, dict[str, Any]], minutes: float | None = None) -> dict[str, dict]:
+    """Train ``out`` from ``data`` for ``steps`` cpu-quick steps with ``overrides`` (unless it is done; with
+    ``minutes``, the ``steps`` schedule laid on that time budget), then for each ``name: eval options`` of ``evals``
+    run ``anisdf eval`` on the test split, kept as ``RUN/eval_<name>.json``. Returns ``{name: eval.json}``."""
     from anisdf.tasks.evaluate import evaluate
     from anisdf.tasks.train import train
 
@@ -23,7 +23,7 @@ def train_and_score(data: Path, out: Path, steps: int, overrides: list[str],
     if rd.status() != "done":
         if out.exists():
             shutil.rmtree(out)
-        train(data, out, preset="cpu-quick", max_steps=steps, overrides=overrides, progress=False)
+        train(data, out, preset="cpu-quick", max_steps=steps, max_minutes=minutes, overrides=overrides, progress=False)
     scores = {}
     for name, options in evals.items():
         kept = out / f"eval_{name}.json"

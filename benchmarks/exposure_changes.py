@@ -1,6 +1,7 @@
 """Per-image appearance codes on a capture whose training photos change exposure and white balance.
 
-    python benchmarks/exposure_changes.py SCENES/maryrose [--work DIR] [--steps 1500] [--stops 1] [--tint 0.1]
+    python benchmarks/exposure_changes.py SCENES/maryrose [--work DIR] [--steps 1500 | --minutes 10] [--stops 1]
+        [--tint 0.1] [--test-too] [--runs off,on,affine,gain]
 
 The bundled real captures share one exposure, so codes have nothing to absorb there. This benchmark writes a copy of
 a capture (any format whose images sit in one folder; everything else linked) in which every training photo is
@@ -9,8 +10,8 @@ re-exposed as a camera's auto exposure and white balance would: in linear light,
 ``--seed``), clipped and re-encoded (JPEG quality 98 for JPEG files). The held-out photos are left as they are, so
 every run is scored against the same images; with ``--test-too`` they are re-exposed as well (their own draws, so
 the training photos are the same either way), as every photo of a capture made with auto exposure is. It trains
-cpu-quick with ``appearance.embedding=off``, ``on`` (a code per image that the heads take) and ``affine`` (on, with
-``embedding_kind=affine``: a colour transform per image) and scores them under eval's appearance protocols
+cpu-quick with ``appearance.embedding=off``, ``on`` (a code per image that the heads take), ``affine`` or ``gain``
+(on, with that ``embedding_kind``: a colour transform per image) and scores them under eval's appearance protocols
 (``--protocols``): the mean code over whole images, and NeRF-W's (a code fitted to each test view's left half, the
 right half scored; a run without codes scores the same right halves).
 Runs already done in ``--work`` are reused.
@@ -81,12 +82,12 @@ def reexpose(data: Path, out: Path, stops: float, tint: float, seed: int, test_t
 
 
 def run_one(data: Path, out: Path, steps: int, codes: str, overrides: list[str], protocols: list[str],
-            eval_downscale: float) -> dict[str, dict]:
+            eval_downscale: float, minutes: float | None = None) -> dict[str, dict]:
     """Train (unless done) and score a run under each appearance protocol (``RUN/eval_appearance_<p>.json``)."""
     evals = {f"appearance_{p}": {"appearance": p, "eval_downscale": eval_downscale} for p in protocols}
-    switch = (["appearance.embedding=on", "appearance.embedding_kind=affine"] if codes == "affine"
+    switch = (["appearance.embedding=on", f"appearance.embedding_kind={codes}"] if codes in ("affine", "gain")
               else [f"appearance.embedding={codes}"])
-    scores = train_and_score(data, out, steps, [*overrides, *switch], evals)
+    scores = train_and_score(data, out, steps, [*overrides, *switch], evals, minutes)
     return {p: scores[f"appearance_{p}"] for p in protocols}
 
 
@@ -96,12 +97,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=None, help="folder of the re-exposed copy and the runs (default: a "
                     "new temporary folder, kept)")
     ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--minutes", type=float, default=None, help="train each run for this many minutes (the --steps "
+                    "schedule laid on them) instead of --steps steps")
     ap.add_argument("--stops", type=float, default=1.0, help="exposure changes uniform in +-STOPS")
     ap.add_argument("--tint", type=float, default=0.1, help="deviation of the log channel gains")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--test-too", action="store_true", help="re-expose the held-out photos as well")
     ap.add_argument("--runs", default="off,on,affine", help="the runs: appearance.embedding off, on (a code the heads "
-                    "take) or affine (on, with embedding_kind=affine: a colour transform per image)")
+                    "take), affine or gain (on, with that embedding_kind: a colour transform per image)")
     ap.add_argument("--protocols", default="mean,fit-left-half", help="eval's appearance protocols to score")
     ap.add_argument("--eval-downscale", type=float, default=1.0)
     ap.add_argument("--set", nargs="*", default=[], metavar="key=value", help="config overrides of every run")
@@ -113,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for codes in a.runs.split(","):
         scores = run_one(changed, work / f"run_codes_{codes}", a.steps, codes, a.set, a.protocols.split(","),
-                         a.eval_downscale)
+                         a.eval_downscale, a.minutes)
         mean, half = scores.get("mean", {}), scores.get("fit-left-half", {})
         any_eval = mean or half
         rows.append({"codes": codes, "psnr": mean.get("psnr", float("nan")), "ssim": mean.get("ssim", float("nan")),

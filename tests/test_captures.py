@@ -17,7 +17,7 @@ from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.data.scene import capture_switch
 from anisdf.fields.radiance_field import RadianceField
-from anisdf.models.per_image import CameraRefinement, colour_affine, pose_changes, se3_exp
+from anisdf.models.per_image import CameraRefinement, colour_affine, colour_gain, pose_changes, se3_exp
 from anisdf.run_dir import RunDir
 from anisdf.tasks.loading import load_run, scene_for_run
 from anisdf.training.trainer import Trainer, build_model
@@ -152,11 +152,15 @@ def test_colour_affine_is_the_identity_at_zero_and_leaves_empty_rays_empty():
     want = c * torch.tensor([2.0, 0.5, 1.0]) + torch.stack([0 * coverage, 0 * coverage, 0.2 * coverage], -1)
     torch.testing.assert_close(colour_affine(c, a, coverage), want)
     assert torch.equal(colour_affine(c, a, coverage)[4], torch.zeros(3))
+    assert torch.equal(colour_gain(c, torch.zeros(5, 3)), c)
+    torch.testing.assert_close(colour_gain(c, torch.tensor([0.6931472, -0.6931472, 0.0]).expand(5, 3)),
+                               c * torch.tensor([2.0, 0.5, 1.0]))
 
 
-def test_a_colour_transform_per_image_learns_each_photos_exposure(tmp_path):
-    """appearance.embedding_kind=affine on photos re-exposed by known gains: the heads take no code, and the transform
-    each training image learns brightens the dark photos and darkens the bright ones."""
+@pytest.mark.parametrize("kind", ["affine", "gain"])
+def test_a_colour_transform_per_image_learns_each_photos_exposure(tmp_path, kind):
+    """appearance.embedding_kind=affine|gain on photos re-exposed by known gains: the heads take no code, and the
+    transform each training image learns brightens the dark photos and darkens the bright ones."""
     truth = write_test_scene(tmp_path / "s", "nerf-synthetic", n_images=9, width=24, height=16)
     scene = load_scene(tmp_path / "s")
     train = scene.splits["train"]
@@ -166,14 +170,15 @@ def test_a_colour_transform_per_image_learns_each_photos_exposure(tmp_path):
         img[..., :3] = np.clip(img[..., :3] * g, 0, 255)
         iio.imwrite(truth.image_paths[i], np.round(img).astype(np.uint8))
     scene = load_scene(tmp_path / "s")
-    cfg = load_config("cpu-quick", [*TINY, "appearance.embedding=on", "appearance.embedding_kind=affine"])
+    cfg = load_config("cpu-quick", [*TINY, "appearance.embedding=on", f"appearance.embedding_kind={kind}"])
     tr = Trainer(cfg, scene, tmp_path / "r", torch.device("cpu"), progress=False)
     model = tr.model
-    assert model.colour_affine and model.image_codes.codes.shape == (9, 12)
+    assert model.colour_transform == kind and model.image_codes.codes.shape == (9, {"affine": 12, "gain": 3}[kind])
     assert model.appearance.view_mlp[0].in_features == RadianceField(cfg.appearance, 15).view_mlp[0].in_features
     for _ in range(80):
         tr.train_step()
-    learned = model.image_codes.codes.detach()[train][:, [0, 4, 8]].mean(1).numpy()  # the mean diagonal of M
+    # the mean diagonal of M, or the mean log gain
+    learned = model.image_codes.codes.detach()[train][:, [0, 4, 8] if kind == "affine" else [0, 1, 2]].mean(1).numpy()
     # 80 steps learn the transforms part of the way, and the path depends on the thread count: their order and the
     # gap between the three darkest and three brightest photos, not the exact values (about 0.085 on 1 and 2 threads)
     assert np.corrcoef(learned, gains)[0, 1] > 0.7, (learned, gains)

@@ -117,9 +117,9 @@ class AppearanceConfig:
     balance, lighting), of kind ``embedding_kind``. auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp,
     process-data), off for rendered scenes. Off by default until measured to help (benchmarks/RESULTS.md). Views
     without their own (test views, orbits, exports) use the training images' mean."""
-    embedding_kind: Literal["code", "affine"] = "code"
+    embedding_kind: Literal["code", "affine", "gain"] = "code"
     """code: a code the radiance heads take as an extra input (NeRF-W); affine: a colour transform of the image's
-    rendering, ``c' = c + M c + b`` (12 numbers, zero at the start): exposure and white balance, nothing else."""
+    rendering, ``c' = c + M c + b`` (12 numbers); gain: ``c' = c exp(g)``, a gain a channel (3 numbers)."""
     embedding_dim: int = 16  # the code's size (embedding_kind=code)
     embedding_lr: float = 1e-2  # the codes' or transforms' learning rate (the scene's warm-up and decay)
 

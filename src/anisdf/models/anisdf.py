@@ -29,7 +29,7 @@ from anisdf.model_components.neus_renderer import (
 )
 from anisdf.model_components.occupancy_grid import OccupancyGrid
 from anisdf.model_components.ray_marching import march
-from anisdf.models.per_image import AFFINE_DIM, CameraRefinement, ImageCodes, colour_affine
+from anisdf.models.per_image import TRANSFORM_DIMS, CameraRefinement, ImageCodes, colour_transform
 
 
 @dataclass
@@ -100,8 +100,9 @@ class AniSDFModel(nn.Module):
         self.geometry = SDFField(cfg.geometry, radius=r.radius)
         per_image = image_codes and trained is not None
         # appearance.embedding_kind: a code the heads read, or a colour transform of each image's rendering
-        self.colour_affine = per_image and cfg.appearance.embedding_kind == "affine"
-        code_dim = cfg.appearance.embedding_dim if per_image and not self.colour_affine else 0
+        kind = cfg.appearance.embedding_kind
+        self.colour_transform = kind if per_image and kind in TRANSFORM_DIMS else None
+        code_dim = cfg.appearance.embedding_dim if per_image and not self.colour_transform else 0
         self.appearance = RadianceField(cfg.appearance, cfg.geometry.feature_dim, code_dim,
                                         fast=cfg.geometry.encoding_backend != "torch")
         self.variance = Variance(r.variance_init, r.variance_scale, r.inv_s_max)
@@ -123,7 +124,7 @@ class AniSDFModel(nn.Module):
                                if r.background_model == "nerf" else EnvironmentBackground())
         self.cameras = (CameraRefinement(camera_poses, trained, cfg.cameras.anchor)
                         if camera_poses is not None and trained is not None else None)
-        n_codes = AFFINE_DIM if self.colour_affine else code_dim
+        n_codes = TRANSFORM_DIMS[self.colour_transform] if self.colour_transform else code_dim
         self.image_codes = ImageCodes(trained.shape[0], n_codes, trained) if n_codes else None
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         # the step as a Python int, which schedules read without waiting for the GPU (the buffer is for checkpoints)
@@ -272,7 +273,7 @@ class AniSDFModel(nn.Module):
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
         if self.image_codes is not None and codes is None:
             codes = self.image_codes(None, n_rays)
-        extra = () if codes is None or self.colour_affine else (codes.index_select(0, s.ray_idx[vis]),)
+        extra = () if codes is None or self.colour_transform else (codes.index_select(0, s.ray_idx[vis]),)
         col_vis = self.color_fn(x[vis] / self.radius, q.feature(vis), normal[vis], d[vis], *extra)
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
@@ -286,10 +287,10 @@ class AniSDFModel(nn.Module):
         for key, val in col_vis.items():
             if key == "rgb" or not train:
                 out[key] = composite(val, w_vis, r_vis, n_rays)
-        if self.colour_affine:  # the image's exposure and white balance, on what the camera saw of the scene
-            out["rgb"] = colour_affine(out["rgb"], codes, opacity)
+        if self.colour_transform:  # the image's exposure and white balance, on what the camera saw of the scene
+            out["rgb"] = colour_transform(self.colour_transform, out["rgb"], codes, opacity)
             if self.background is not None:  # a learned background is part of the photo; a given colour is not
-                background = colour_affine(background, codes, torch.ones_like(opacity))
+                background = colour_transform(self.colour_transform, background, codes, torch.ones_like(opacity))
         out["rgb"] = out["rgb"] + (1.0 - opacity[:, None]) * background
         out["opacity"] = opacity
         if not train:
@@ -410,7 +411,7 @@ class AniSDFModel(nn.Module):
     def codes_for(self, cam_idx: Tensor | None, n: int) -> tuple[Tensor, ...]:
         """The appearance codes the radiance field takes for ``n`` rays or points of the images ``cam_idx`` (None:
         the mean code) as a tuple of extra arguments: empty when the model has none."""
-        return () if self.image_codes is None or self.colour_affine else (self.image_codes(cam_idx, n),)
+        return () if self.image_codes is None or self.colour_transform else (self.image_codes(cam_idx, n),)
 
     def param_groups(self) -> list[dict]:
         """The optimiser's groups: model, variance, the per-image codes (``appearance.embedding_lr``) when learned, and

@@ -130,8 +130,9 @@ class CameraRefinement(nn.Module):
         return torch.cat([rot @ d_rot, (origin + (rot @ d_t[..., None])[..., 0])[..., None]], dim=-1)
 
 
-AFFINE_DIM = 12
-"""Numbers of a per-image colour transform (``appearance.embedding_kind=affine``): ``M`` row by row, then ``b``."""
+TRANSFORM_DIMS = {"affine": 12, "gain": 3}
+"""Numbers of a per-image colour transform (``appearance.embedding_kind``): affine, ``M`` row by row then ``b``;
+gain, the three channels' log gains."""
 
 
 def colour_affine(c: Tensor, a: Tensor, coverage: Tensor) -> Tensor:
@@ -142,8 +143,19 @@ def colour_affine(c: Tensor, a: Tensor, coverage: Tensor) -> Tensor:
     return c + torch.einsum("bij,bj->bi", m, c) + a[:, 9:] * coverage[:, None]
 
 
+def colour_gain(c: Tensor, a: Tensor) -> Tensor:
+    """``c * exp(a)`` [B, 3], ``a`` [B, 3] each ray's image log gains (zero: identity). A camera's exposure and white
+    balance scale linear light by a gain a channel; through the sRGB curve (about a power 1/2.2) that stays a gain."""
+    return c * a.exp()
+
+
+def colour_transform(kind: str, c: Tensor, a: Tensor, coverage: Tensor) -> Tensor:
+    """:func:`colour_affine` or :func:`colour_gain` (``kind``) of premultiplied colours ``c`` [B, 3]."""
+    return colour_affine(c, a, coverage) if kind == "affine" else colour_gain(c, a)
+
+
 class ImageCodes(nn.Module):
-    """An appearance code per image ([N, dim], zero at the start; or a colour transform, :func:`colour_affine`);
+    """An appearance code per image ([N, dim], zero at the start; or a colour transform, :func:`colour_transform`);
     images not ``trained`` read the mean code, or ``fixed`` when set (a code fitted to a test view,
     :mod:`anisdf.tasks.evaluate.appearance`)."""
 

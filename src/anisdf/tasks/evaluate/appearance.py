@@ -55,8 +55,9 @@ def appearance_record(model, protocol: str) -> dict[str, Any]:
         return {"codes": "none (appearance.embedding off): one appearance for every view", "protocol": protocol,
                 "scored": "whole image" if protocol == "mean" else
                           "right half (columns >= W // 2) for PSNR and SSIM, as fit-left-half scores a run with codes"}
-    kind = ("a colour transform per training image (appearance.embedding, embedding_kind=affine)"
-            if getattr(model, "colour_affine", False) else "per training image (appearance.embedding)")
+    transform = getattr(model, "colour_transform", None)
+    kind = (f"a colour transform per training image (appearance.embedding, embedding_kind={transform})"
+            if transform else "per training image (appearance.embedding)")
     if protocol == "mean":
         return {"codes": kind, "protocol": "mean",
                 "view_code": "the mean of the training images' codes, for every scored view", "scored": "whole image"}
