@@ -17,7 +17,15 @@ from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.data.scene import capture_switch
 from anisdf.fields.radiance_field import RadianceField
-from anisdf.models.per_image import CameraRefinement, colour_affine, colour_gain, pose_changes, se3_exp
+from anisdf.models.per_image import (
+    CameraRefinement,
+    colour_affine,
+    colour_gain,
+    colour_transform,
+    pose_changes,
+    se3_exp,
+    undo_colour_transform,
+)
 from anisdf.run_dir import RunDir
 from anisdf.tasks.loading import load_run, scene_for_run
 from anisdf.training.trainer import Trainer, build_model
@@ -155,6 +163,10 @@ def test_colour_affine_is_the_identity_at_zero_and_leaves_empty_rays_empty():
     assert torch.equal(colour_gain(c, torch.zeros(5, 3)), c)
     torch.testing.assert_close(colour_gain(c, torch.tensor([0.6931472, -0.6931472, 0.0]).expand(5, 3)),
                                c * torch.tensor([2.0, 0.5, 1.0]))
+    for kind, dim in (("affine", 12), ("gain", 3)):  # the scene's own colour back from a photo's (full coverage)
+        t = torch.randn(dim, generator=torch.Generator().manual_seed(dim)) * 0.2
+        photo = colour_transform(kind, c, t.expand(5, dim), torch.ones(5))
+        torch.testing.assert_close(undo_colour_transform(kind, photo, t), c)
 
 
 @pytest.mark.parametrize("kind", ["affine", "gain"])

@@ -229,3 +229,31 @@ def test_relight_eval_relight_and_export_pbr(fitted_run, toy_scene, tmp_path):
     assert geom.visual.material.metallicRoughnessTexture.size == (64, 64)
     pbr = pygltflib.GLTF2().load(str(asset / "model.glb")).materials[0].pbrMetallicRoughness
     assert pbr.baseColorTexture.index == 0 and pbr.metallicRoughnessTexture.index == 1
+
+
+def test_materials_fits_a_photo_run_with_refined_cameras_and_takes_each_photos_gain_out(tmp_path):
+    """A photo capture's run (camera corrections and a gain per image, as auto gives photos) loads for the fit, and
+    the fit sees each training photo divided by its image's learned gain: the scene's own colour."""
+    from scenes import write_test_scene
+    from test_training import TINY
+
+    from anisdf.cli import main
+    from anisdf.tasks.materials import _load_model, _training_views
+
+    write_test_scene(tmp_path / "s", "colmap", n_images=9, width=24, height=16)
+    run = tmp_path / "run"
+    assert main(["train", str(tmp_path / "s"), "--out", str(run), "--preset", "cpu-quick", "--max-steps", "6",
+                 "--no-progress", *TINY, "cameras.refine=on", "appearance.embedding=on",
+                 "appearance.embedding_kind=gain"]) == 0
+    assert main(["materials", str(run), *TINY_FIT]) == 0
+    cfg, model, ck = _load_model(run)
+    assert model.cameras is not None and model.colour_transform == "gain"
+    with torch.no_grad():
+        model.image_codes.codes.zero_()
+        photos = _training_views(run, cfg, ck, 0, model)  # gain 1: the photos as they are
+        model.image_codes.codes.copy_(torch.log(torch.tensor([2.0, 1.0, 0.5])).expand_as(model.image_codes.codes))
+    own = _training_views(run, cfg, ck, 0, model)
+    assert len(own) == len(photos) == int(model.image_codes.trained.sum()) > 0
+    for (_, photo, _), (_, seen, _) in zip(photos, own, strict=True):
+        want = np.clip(photo * np.array([0.5, 1.0, 2.0]), 0, 255)  # divided by each channel's gain
+        np.testing.assert_allclose(seen, want, atol=1e-3)

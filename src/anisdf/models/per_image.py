@@ -154,6 +154,15 @@ def colour_transform(kind: str, c: Tensor, a: Tensor, coverage: Tensor) -> Tenso
     return colour_affine(c, a, coverage) if kind == "affine" else colour_gain(c, a)
 
 
+def undo_colour_transform(kind: str, c: Tensor, a: Tensor) -> Tensor:
+    """The scene's own colours [..., 3] of one photo's colours ``c`` (pixels the scene covers) under its transform
+    ``a`` [dim]: the inverse of :func:`colour_transform` at full coverage."""
+    if kind == "gain":
+        return c * (-a).exp()
+    m = torch.eye(3, dtype=a.dtype, device=a.device) + a[:9].reshape(3, 3)
+    return (c - a[9:]) @ torch.linalg.inv(m).T
+
+
 class ImageCodes(nn.Module):
     """An appearance code per image ([N, dim], zero at the start; or a colour transform, :func:`colour_transform`);
     images not ``trained`` read the mean code, or ``fixed`` when set (a code fitted to a test view,

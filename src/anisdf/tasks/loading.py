@@ -14,26 +14,31 @@ from anisdf.run_dir import RunDir
 log = logging.getLogger("anisdf")
 
 
+def model_from_checkpoint(cfg, ck: dict[str, Any], device: torch.device | str = "cpu"):
+    """The model of checkpoint ``ck`` built with ``cfg`` (eval mode, at the checkpoint's step), with the parts it
+    trained with: a background, and the per-image parts whose auto switches were resolved from the dataset's format
+    (camera corrections, appearance codes; shapes from the checkpoint)."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    sd = ck["model"]
+    learn_bg = any(k.startswith("background.") for k in sd)
+    trained = sd.get("cameras.trained", sd.get("image_codes.trained"))
+    model = AniSDFModel(cfg, learn_background=learn_bg, trained=trained, camera_poses=sd.get("cameras.poses"),
+                        image_codes="image_codes.codes" in sd).to(device)
+    model.load_state_dict(sd)
+    model.set_step(ck["state"]["step"])
+    return model.eval()
+
+
 def load_run(run: Path, device: torch.device | str = "cpu"):
     """Config, model (eval mode, at the checkpoint's step) and checkpoint dict of a trained run."""
     from anisdf.config import config_from_dict
-    from anisdf.models.anisdf import AniSDFModel
     from anisdf.training.checkpoint import load_checkpoint
 
     torch.set_flush_denormal(True)
     ck = load_checkpoint(RunDir(run).checkpoint, map_location=device)
     cfg = config_from_dict(ck["config"])
-    sd = ck["model"]
-    learn_bg = any(k.startswith("background.") for k in sd)
-    # per-image parts as trained (their auto switches were resolved from the dataset's format): shapes from the
-    # checkpoint, values loaded below
-    trained = sd.get("cameras.trained", sd.get("image_codes.trained"))
-    model = AniSDFModel(cfg, learn_background=learn_bg, trained=trained, camera_poses=sd.get("cameras.poses"),
-                        image_codes="image_codes.codes" in sd).to(device)
-    model.load_state_dict(ck["model"])
-    model.set_step(ck["state"]["step"])
-    model.eval()
-    return cfg, model, ck
+    return cfg, model_from_checkpoint(cfg, ck, device), ck
 
 
 def scene_for_run(run: Path, cfg, ck: dict[str, Any], downscale: float | None = None, split: str | None = None):

@@ -50,34 +50,48 @@ class MaterialsOptions:
     progress: bool = option(True, "show a progress bar", cli=False)
 
 
-def _training_views(run: Path, cfg, ck: dict[str, Any], max_views: int) -> list:
-    """(camera in the dataset frame, RGB uint8, coverage or None) of the run's training photos at full size."""
+def _training_views(run: Path, cfg, ck: dict[str, Any], max_views: int, model) -> list:
+    """(camera in the dataset frame, RGB, coverage or None) of the run's training photos at full size: uint8, or
+    float in [0, 255] for the photos of a run that learned a colour transform per image (``appearance.embedding_kind``
+    affine or gain), whose exposure and white balance are taken out (the scene's own colour)."""
+    from anisdf.models.per_image import undo_colour_transform
     from anisdf.tasks.loading import dataset_camera, scene_for_run
 
     scene = scene_for_run(run, cfg, ck, downscale=1.0, split="train")
     idx = scene.splits.get("train") or list(range(scene.n_images))
+    transforms = None
+    if model.colour_transform and model.image_codes is not None:
+        # the split's views in order are the trained images in order (load_scene keeps the dataset's order)
+        transforms = model.image_codes.codes.detach()[model.image_codes.trained]
+        if transforms.shape[0] != len(idx):
+            log.warning("materials: %d training photos against %d learned colour transforms; the photos are used "
+                        "as they are", len(idx), transforms.shape[0])
+            transforms = None
     if max_views:
         idx = idx[:: max(1, math.ceil(len(idx) / max_views))][:max_views]
     cover = scene.alpha if scene.alpha is not None else scene.masks
-    return [(dataset_camera(scene, i, ck), scene.images[i].numpy(),
-             None if cover is None else cover[i].float().numpy() / 255.0) for i in idx]
+    views = []
+    for i in idx:
+        rgb = scene.images[i].numpy()
+        if transforms is not None:
+            own = undo_colour_transform(model.colour_transform, torch.from_numpy(rgb).float() / 255.0, transforms[i])
+            rgb = (own.clamp(0.0, 1.0) * 255.0).numpy()
+        views.append((dataset_camera(scene, i, ck), rgb, None if cover is None else cover[i].float().numpy() / 255.0))
+    return views
 
 
 def _load_model(run: Path):
     """The run's model on the CPU with the plain PyTorch hash grid (the same numbers as the compiled kernel; the
     surface is taken once, so the kernel's build or its lock is not worth waiting for)."""
     from anisdf.config import config_from_dict
-    from anisdf.models.anisdf import AniSDFModel
+    from anisdf.tasks.loading import model_from_checkpoint
     from anisdf.training.checkpoint import load_checkpoint
 
     ck = load_checkpoint(RunDir(run).checkpoint)
     raw = dict(ck["config"])
     raw["geometry"] = {**raw["geometry"], "encoding_backend": "torch"}
     cfg = config_from_dict(raw)
-    model = AniSDFModel(cfg, learn_background=any(k.startswith("background.") for k in ck["model"]))
-    model.load_state_dict(ck["model"])
-    model.set_step(ck["state"]["step"])
-    return cfg, model.eval(), ck
+    return cfg, model_from_checkpoint(cfg, ck), ck
 
 
 def _surface(rd: RunDir, o: MaterialsOptions, cfg, model, ck):
@@ -129,8 +143,8 @@ def materials(run: Path, options: MaterialsOptions | None = None, **changes: Any
     torch.set_num_threads(max(1, torch.get_num_threads()))
     cfg, model, ck = _load_model(rd.root)
     surface = _surface(rd, o, cfg, model, ck)
+    views = _training_views(rd.root, cfg, ck, o.max_views, model)
     del model
-    views = _training_views(rd.root, cfg, ck, o.max_views)
     bar = tqdm(total=len(views), desc="materials: pixels", disable=not o.progress, leave=False, unit="view")
     vis = _visibility(rd, o, surface)
     samples = gather_samples(surface, views, progress=lambda _i: bar.update(1),
