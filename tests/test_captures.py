@@ -31,7 +31,7 @@ from anisdf.tasks.loading import load_run, scene_for_run
 from anisdf.training.trainer import Trainer, build_model
 
 AUTO = ["cameras.refine=auto", "appearance.embedding=auto"]
-"""Both switches following the dataset's format (the default of cameras.refine; appearance.embedding is off)."""
+"""Both switches following the dataset's format (their defaults)."""
 
 
 def _hat(xi: np.ndarray) -> np.ndarray:
@@ -114,17 +114,19 @@ def test_the_anchor_takes_out_the_motion_common_to_all_cameras_and_keeps_the_res
 
 @pytest.mark.parametrize("fmt", ["nerf-synthetic", "neus", "llff", "colmap", "instant-ngp"])
 def test_switches_are_off_for_rendered_scenes_and_on_for_photos(tmp_path, fmt):
-    """auto follows the format; by default photos get camera refinement (measured to help) and no appearance codes
-    (measured not to), and the paper's photo presets keep the dataset's cameras."""
+    """auto follows the format; by default photos get camera refinement and a gain per image (both measured to
+    help), and the paper's photo presets keep the dataset's cameras and learn nothing per image."""
     write_test_scene(tmp_path / fmt, fmt)
     scene = load_scene(tmp_path / fmt)
     photos = fmt != "nerf-synthetic"
     model = build_model(load_config("cpu-quick", [*TINY, *AUTO]), scene, torch.device("cpu"))
     assert (model.cameras is not None, model.image_codes is not None) == (photos, photos)
     default = build_model(load_config("cpu-quick", TINY), scene, torch.device("cpu"))
-    assert (default.cameras is not None) == photos and default.image_codes is None
+    assert (default.cameras is not None, default.image_codes is not None) == (photos, photos)
+    if photos:
+        assert default.colour_transform == "gain" and default.image_codes.codes.shape[1] == 3
     for paper in ("dtu", "mipnerf360"):
-        assert load_config(paper).cameras.refine == "off"
+        assert (load_config(paper).cameras.refine, load_config(paper).appearance.embedding) == ("off", "off")
     off = build_model(load_config("cpu-quick", [*TINY, "cameras.refine=off", "appearance.embedding=false"]), scene,
                       torch.device("cpu"))
     assert off.cameras is None and off.image_codes is None

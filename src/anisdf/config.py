@@ -112,12 +112,12 @@ class AppearanceConfig:
     ref_hidden: int = 128
     ref_layers: int = 2
     pe_frequencies: int = 6
-    embedding: Literal["auto", "on", "off"] = "off"
+    embedding: Literal["auto", "on", "off"] = "auto"
     """Something learned per training image that absorbs what changes from photo to photo (auto exposure, white
     balance, lighting), of kind ``embedding_kind``. auto: on for real photos (NeuS/DTU, LLFF, COLMAP, instant-ngp,
-    process-data), off for rendered scenes. Off by default until measured to help (benchmarks/RESULTS.md). Views
-    without their own (test views, orbits, exports) use the training images' mean."""
-    embedding_kind: Literal["code", "affine", "gain"] = "code"
+    process-data), off for rendered scenes and in the dtu and mipnerf360 presets (the paper). Views without their own
+    (test views, orbits, exports) use the training images' mean. benchmarks/RESULTS.md, "Per-image appearance"."""
+    embedding_kind: Literal["code", "affine", "gain"] = "gain"
     """code: a code the radiance heads take as an extra input (NeRF-W); affine: a colour transform of the image's
     rendering, ``c' = c + M c + b`` (12 numbers); gain: ``c' = c exp(g)``, a gain a channel (3 numbers)."""
     embedding_dim: int = 16  # the code's size (embedding_kind=code)
