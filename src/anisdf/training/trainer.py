@@ -66,8 +66,8 @@ def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
     codes = capture_switch(cfg.appearance.embedding, scene.format)
     trained = torch.zeros(scene.n_images, dtype=torch.bool)
     trained[list(range(scene.n_images)) if cfg.data.train_split == "all" else scene.splits["train"]] = True
-    log.info("%s (%s): camera refinement %s, per-image appearance codes %s", scene.root.name, scene.format,
-             "on" if refine else "off", "on" if codes else "off")
+    log.info("%s (%s): camera refinement %s, per-image appearance %s", scene.root.name, scene.format,
+             "on" if refine else "off", f"on ({cfg.appearance.embedding_kind})" if codes else "off")
     return AniSDFModel(cfg, learn_background=learn_bg, trained=trained if refine or codes else None,
                        camera_poses=scene.cameras.c2w.cpu() if refine else None, image_codes=codes).to(device)
 
