@@ -44,7 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     for item in a.runs:
         label, _, name = item.rpartition("=")
         run = a.work / f"run_codes_{name}"
-        scores = json.loads((run / "eval_appearance_fit-left-half.json").read_text())["per_view"][a.view]
+        scored = run / "eval_appearance_fit-left-half.json"
+        if not scored.is_file():
+            raise SystemExit(f"{scored}: missing; run exposure_changes.py with --protocols fit-left-half for '{name}'")
+        scores = json.loads(scored.read_text())["per_view"][a.view]
         photo = next((a.work / "data_reexposed").rglob(scores["image"]))
         ph, pw = iio.imread(photo).shape[:2]
         gt, render = sheet_panels(iio.imread(run / "eval" / f"{a.view:03d}.png")[..., :3], pw / ph)
