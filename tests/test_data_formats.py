@@ -170,6 +170,21 @@ def test_downscale_scales_intrinsics_with_pixel_centres(tmp_path: Path) -> None:
     assert (block - half.images[2].float()).abs().max() <= 1.0
 
 
+def test_min_size_lowers_the_downscale_of_small_images(tmp_path: Path) -> None:
+    """data.min_size: a 16 x 12 capture halved would be 8 px wide; with min_size 12 it loads 12 x 9, its intrinsics
+    scaled to match, and the scene says the factor it applied. Larger images, and no min_size, halve as asked."""
+    write_test_scene(tmp_path / "s", "instant-ngp", distortion=DIST)
+    full = load_scene(tmp_path / "s")
+    capped = load_scene(tmp_path / "s", downscale=2, min_size=12)
+    assert (capped.width, capped.height) == (12, 9) and capped.images.shape[1:3] == (9, 12)
+    assert capped.downscale == pytest.approx(16 / 12)
+    assert torch.allclose(capped.cameras.fx, full.cameras.fx * 12 / 16)
+    for min_size, want in [(0, (8, 6)), (8, (8, 6)), (64, (16, 12))]:
+        s = load_scene(tmp_path / "s", downscale=2, min_size=min_size)
+        assert (s.width, s.height) == want and s.downscale == pytest.approx(16 / want[0])
+    assert load_scene(tmp_path / "s", downscale=1, min_size=64).width == 16  # never enlarged
+
+
 def test_max_images_thins_the_train_split(tmp_path: Path) -> None:
     write_test_scene(tmp_path / "s", "colmap", n_images=12)
     full = load_scene(tmp_path / "s")

@@ -269,12 +269,28 @@ def test_resume_accepts_the_runs_own_preset_and_refuses_a_changed_setting(toy_sc
     assert json.loads(capsys.readouterr().out)["step"] == 4
     for extra, key in [(["geometry.hidden_dim=64"], "geometry.hidden_dim"),
                        (["--preset", "cpu-quick", *TINY, "appearance.kind=pe"], "appearance.kind"),
-                       (["--preset", "cpu-quick"], "data.downscale"),  # the preset without the run's overrides
+                       # the preset without the run's overrides (its downscale, capped by data.min_size, agrees)
+                       (["--preset", "cpu-quick"], "geometry.n_levels"),
                        (["--preset", "nerf-synthetic", *TINY], "preset")]:
         assert main([*start, "--resume", "--max-steps", "5", *extra]) == 2, extra
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"--resume: {key}" in err[0] and "config.yaml" in err[0], err
     assert json.loads((out / "run.json").read_text())["step"] == 4  # a refused resume trains nothing
+
+
+def test_a_run_records_the_downscale_min_size_gave_and_resumes_with_its_preset(toy_scene, tmp_path, capsys):
+    """cpu-quick halves images but keeps 256 px on the longer side (data.min_size): the 32 px toy scene trains at
+    full size, config.yaml says so (eval and resume read it), and the same preset and overrides resume the run."""
+    out = tmp_path / "run"
+    start = ["train", str(toy_scene), "--out", str(out), "--no-progress", "--preset", "cpu-quick"]
+    assert main([*start, "--max-steps", "1", *TINY, "data.downscale=2"]) == 0
+    saved = yaml.safe_load((out / "config.yaml").read_text())["data"]
+    assert saved["downscale"] == 1.0 and saved["min_size"] == 256
+    capsys.readouterr()
+    assert main([*start, "--resume", "--max-steps", "2", *TINY, "data.downscale=2"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 2
+    assert main([*start, "--resume", "--max-steps", "3", *TINY, "data.downscale=2", "data.min_size=0"]) == 2
+    assert "--resume: data.downscale is 1.0" in capsys.readouterr().err
 
 
 def test_loss_dict_has_every_term(toy_scene, tmp_path):

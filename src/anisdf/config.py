@@ -37,6 +37,8 @@ log = logging.getLogger("anisdf")
 class DataConfig:
     downscale: float = 1.0
     """Divide image width and height by this factor when loading."""
+    min_size: int = 0
+    """Lower ``downscale`` (not below 1) so that the images' longer side keeps at least this many pixels; 0: off."""
     background: Literal["auto", "white", "black", "random"] = "auto"
     """Training background for RGBA images: auto | white | black | random."""
     max_images: int = 0
@@ -220,10 +222,8 @@ class LossConfig:
     fine grids' finest active cells (the release's intent; its code reads the coarse grid's level count for both, so
     its step is in effect the coarse grid's cell)."""
     curvature_fraction: float = 0.25
-    """Fraction of the step's samples (at least 1024) on which the curvature term is evaluated: it needs a second
-    SDF query with gradients at perturbed points. Neither the paper nor the release uses a subset; on
-    bunny_plastic's 10-minute cpu-quick run 1.0 ran 27% fewer steps and ended worse (41.03 dB, 3.36 deg, Chamfer
-    0.00426 against 41.63, 2.95, 0.00388; benchmarks/RESULTS.md, measured 2026-12-02), so 0.25 stays."""
+    """Fraction of the step's samples (at least 1024) given the curvature term's second SDF query (the paper: all). In
+    cpu-quick's 10 minutes 1.0 ran 27% fewer steps and ended worse (benchmarks/RESULTS.md, 2026-12-02)."""
     orientation: float = 1e-3
     orientation_start: float = -1.0
     """Orientation weight at step 0, ramping linearly to ``orientation`` over ``orientation_ramp_steps``

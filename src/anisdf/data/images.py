@@ -24,6 +24,24 @@ def target_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     return max(1, round(width / downscale)), max(1, round(height / downscale))
 
 
+def capped_downscale(width: int, height: int, downscale: float, min_size: int) -> float:
+    """``downscale`` lowered (not below 1) so that the longer side keeps at least ``min_size`` pixels (0: as is)."""
+    if min_size <= 0 or downscale <= 1.0:
+        return downscale
+    return max(1.0, min(downscale, max(width, height) / min_size))
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """``(W, H)`` of an image file on disk, from its header."""
+    if not path.is_file():
+        raise DataError(path, "image file is missing")
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except DECODE_ERRORS as exc:
+        raise DataError(path, f"cannot decode image ({exc})") from None
+
+
 def _open(path: Path) -> Image.Image:
     if not path.is_file():
         raise DataError(path, "image file is missing")

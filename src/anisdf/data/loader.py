@@ -11,7 +11,15 @@ import torch
 
 from anisdf.data.cameras import Cameras
 from anisdf.data.dataparsers._common import ParsedScene
-from anisdf.data.images import parallel_map, read_mask, read_normal, read_rgb, target_size
+from anisdf.data.images import (
+    capped_downscale,
+    image_size,
+    parallel_map,
+    read_mask,
+    read_normal,
+    read_rgb,
+    target_size,
+)
 from anisdf.data.normalize import (
     RegionOfInterest,
     camera_roi,
@@ -45,7 +53,7 @@ def _check_size(paths: list[Path], sizes: list[tuple[int, int]], ref: tuple[int,
 
 
 def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0,
-                roi_center: tuple[float, ...] = (), roi_radius: float = 0.0) -> Scene:
+                roi_center: tuple[float, ...] = (), roi_radius: float = 0.0, min_size: int = 0) -> Scene:
     """Decode and normalise a parsed dataset (see :func:`anisdf.data.load_scene`)."""
     if not (math.isfinite(downscale) and downscale > 0):
         raise AnisdfError(f"downscale must be a positive number, got {downscale}")
@@ -54,6 +62,8 @@ def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0
     keep = select_images(parsed, max_images)
     remap = {old: new for new, old in enumerate(keep)}
     paths = [parsed.image_paths[i] for i in keep]
+    if min_size > 0 and downscale > 1.0:
+        downscale = capped_downscale(*image_size(paths[0]), downscale, min_size)
 
     decoded = parallel_map(lambda p: read_rgb(p, downscale), paths)
     native = decoded[0][2]
@@ -138,6 +148,7 @@ def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0
         background="rgba" if alpha is not None else "opaque",
         to_world=to_world,
         scene_radius=float(roi.radius),
+        downscale=downscale,
         warnings=warnings,
         roi_method=roi.method,
     )

@@ -55,6 +55,8 @@ class Scene:
     roi_method: str = ""
     """How the region of interest was found: scale_mat | sparse-points (process-data) | visual-hull | camera-axes |
     forward-facing."""
+    downscale: float = 1.0
+    """The factor the images were divided by (``data.downscale``, lowered by ``data.min_size``)."""
 
     @property
     def n_images(self) -> int:

@@ -52,13 +52,13 @@ def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list[str]) -> Config:
+def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list[str], data: Path) -> Config:
     """The config a resumed run goes on with: its own (``config.yaml``), with any ``train.*`` overrides applied.
 
     ``--preset`` and other overrides may be repeated on ``--resume`` as long as they give the settings the run
     already has; a setting outside ``train.*`` that would change is an error naming the key. (``train.*`` values of
     the named preset are not compared: the run's budget and schedule stand unless a ``train.*`` override changes
-    them.)
+    them. ``data.downscale`` is compared as ``data.min_size`` makes it for ``data``'s images, as the run records it.)
     """
     train_items = [o for o in overrides if o.partition("=")[0].strip().startswith("train.")]
     other = [o for o in overrides if o not in train_items]
@@ -71,6 +71,12 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
             if not eq:
                 raise AnisdfError(f"override '{item}' is not of the form key=value")
             set_key(wanted, key.strip(), value)
+    if wanted.data.min_size > 0 and wanted.data.downscale > 1.0:
+        from anisdf.data.dataparsers import first_image
+        from anisdf.data.images import capped_downscale, image_size
+
+        size = image_size(first_image(data, wanted.data.images_dir))
+        wanted.data.downscale = capped_downscale(*size, wanted.data.downscale, wanted.data.min_size)
     have, want = _flat(saved.to_dict()), _flat(wanted.to_dict())
     for key, value in want.items():
         if key in CAPTURE_SWITCHES and value == "auto":  # auto stands for what the run resolved it to
@@ -146,7 +152,7 @@ def _config(data: Path, out: Path, o: TrainOptions) -> tuple[Config, dict[str, A
     if o.resume:
         ck = load_checkpoint(ckpt_path)
         cfg = _resume_config(out, config_from_dict(ck["config"]), None if o.preset == "auto" else o.preset,
-                             o.overrides or [])
+                             o.overrides or [], data)
         _settle_switches(cfg, list(ck["model"]))
     else:
         if ckpt_path.exists():
@@ -202,7 +208,11 @@ def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: 
     try:
         scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
                            images_dir=cfg.data.images_dir, roi_center=cfg.data.roi_center,
-                           roi_radius=cfg.data.roi_radius)
+                           roi_radius=cfg.data.roi_radius, min_size=cfg.data.min_size)
+        if scene.downscale != cfg.data.downscale and (ctx is None or ctx.is_main):
+            log.info("images at %dx%d: downscale %g instead of %g (data.min_size=%d)", scene.width, scene.height,
+                     scene.downscale, cfg.data.downscale, cfg.data.min_size)
+        cfg.data.downscale = scene.downscale  # what was used (data.min_size), for eval and resume
         if ctx is None or ctx.is_main:
             for w in scene.warnings:
                 log.warning("warning: %s", w)

@@ -62,7 +62,7 @@ def parse_dataset(path: str | Path) -> ParsedScene:
 
 def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, images_dir: str = "",
                split: str | None = None, to_world: np.ndarray | None = None, roi_center: tuple[float, ...] = (),
-               roi_radius: float = 0.0) -> Scene:
+               roi_radius: float = 0.0, min_size: int = 0) -> Scene:
     """Load the dataset in folder ``path`` (format auto-detected) as a normalised :class:`Scene`.
 
     ``downscale`` divides the image size (antialiased resize; intrinsics scaled to match);
@@ -73,7 +73,8 @@ def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, im
     interest; ``split`` then keeps only that split's views (the others are not decoded). ``roi_center`` (x, y, z)
     and ``roi_radius`` (> 0) replace the automatic region of interest's centre and radius (the dataset's frame and
     units; ``data.roi_center`` / ``data.roi_radius``); a sphere that holds a camera or that no camera sees is an
-    error.
+    error. ``min_size`` > 0 lowers ``downscale`` so that the images' longer side keeps at least that many pixels
+    (``data.min_size``; :attr:`Scene.downscale` is the factor applied).
     """
     parsed = parse_dataset(path)
     if images_dir:
@@ -86,7 +87,7 @@ def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, im
             raise ValueError("load_scene: split needs to_world (the normalisation cannot be found from one split)")
         parsed = _only_split(parsed, split)
     return build_scene(parsed, downscale=downscale, max_images=max_images, roi_center=tuple(roi_center),
-                       roi_radius=float(roi_radius))
+                       roi_radius=float(roi_radius), min_size=min_size)
 
 
 def _only_split(parsed: ParsedScene, split: str) -> ParsedScene:
@@ -108,6 +109,12 @@ def _only_split(parsed: ParsedScene, split: str) -> ParsedScene:
     )
 
 
+def first_image(path: str | Path, images_dir: str = "") -> Path:
+    """The dataset's first image file as :func:`load_scene` reads it (from ``images_dir`` when given)."""
+    image = parse_dataset(path).image_paths[0]
+    return _other_folder(image, Path(path) / images_dir) if images_dir else image
+
+
 def _other_folder(image: Path, folder: Path) -> Path:
     if not folder.is_dir():
         raise DataError(folder, "image folder (data.images_dir) does not exist")
@@ -117,4 +124,4 @@ def _other_folder(image: Path, folder: Path) -> Path:
     raise DataError(folder / image.name, f"image missing (data.images_dir has no counterpart of {image.name})")
 
 
-__all__ = ["PARSERS", "ParsedScene", "detect_format", "load_scene", "parse_dataset"]
+__all__ = ["PARSERS", "ParsedScene", "detect_format", "first_image", "load_scene", "parse_dataset"]
