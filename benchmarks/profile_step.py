@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     try:  # bad device, preset, override or dataset: one line naming it, not a traceback
         dev = pick_device(args.device)
         cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", *args.overrides])
-        scene = load_scene(args.data, downscale=cfg.data.downscale)
+        scene = load_scene(args.data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
     except AnisdfError as err:
         ap.error(str(err))
     with tempfile.TemporaryDirectory() as tmp:

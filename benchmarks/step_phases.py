@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", "train.max_minutes=0",
                                         *args.overrides])
-        scene = load_scene(args.data, downscale=cfg.data.downscale)
+        scene = load_scene(args.data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
         ck = load_checkpoint(args.run / "checkpoints" / "last.pt") if args.run else None
     except AnisdfError as err:
         ap.error(str(err))

@@ -40,17 +40,19 @@ class BenchOptions:
     preset: str = option("cpu-quick", "configuration of the training-step and time-to-PSNR runs")
 
 
-def _scene(data: Path | None, downscale: float):
+def _scene(data: Path | None, preset: str):
+    """The scene at the size ``preset`` trains it (its ``data.downscale`` and ``data.min_size``)."""
     from anisdf.data.dataparsers import load_scene
     from anisdf.data.synthetic import make_synthetic_scene
 
+    d = load_config(preset).data
     if data is None:
         data = DEFAULT_DATA if DEFAULT_DATA.is_dir() else None
     if data is None:
         data = Path(tempfile.mkdtemp(prefix="anisdf-bench-"))
         make_synthetic_scene(data, n_train=40, n_test=8, size=128)
-        downscale = 1
-    return load_scene(data, downscale=downscale)
+        return load_scene(data)
+    return load_scene(data, downscale=d.downscale, min_size=d.min_size)
 
 
 def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, device: torch.device | None = None,
@@ -149,7 +151,7 @@ def run_bench(options: BenchOptions | None = None, **changes: Any) -> dict:
     result["encoding"] = enc
     row = enc["settings"][0]
     result["encoding_fwd_bwd_speedup"] = row.get("speedup", {}).get("fwd+bwd")
-    scene = _scene(data, downscale=2 if preset == "cpu-quick" else 1)
+    scene = _scene(data, preset)
     ref = bench_train_step(scene, "torch", device=dev, preset=preset)
     fast_available = load_fast_encoder(device=dev) is not None
     fast = bench_train_step(scene, "auto", device=dev, preset=preset) if fast_available else None
