@@ -31,17 +31,6 @@ def capped_downscale(width: int, height: int, downscale: float, min_size: int) -
     return max(1.0, min(downscale, max(width, height) / min_size))
 
 
-def image_size(path: Path) -> tuple[int, int]:
-    """``(W, H)`` of an image file on disk, from its header."""
-    if not path.is_file():
-        raise DataError(path, "image file is missing")
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except DECODE_ERRORS as exc:
-        raise DataError(path, f"cannot decode image ({exc})") from None
-
-
 def _open(path: Path) -> Image.Image:
     if not path.is_file():
         raise DataError(path, "image file is missing")

@@ -10,10 +10,9 @@ import numpy as np
 import torch
 
 from anisdf.data.cameras import Cameras
-from anisdf.data.dataparsers._common import ParsedScene
+from anisdf.data.dataparsers._common import ParsedScene, image_size
 from anisdf.data.images import (
     capped_downscale,
-    image_size,
     parallel_map,
     read_mask,
     read_normal,

@@ -72,10 +72,10 @@ def _resume_config(out: Path, saved: Config, preset: str | None, overrides: list
                 raise AnisdfError(f"override '{item}' is not of the form key=value")
             set_key(wanted, key.strip(), value)
     if wanted.data.min_size > 0 and wanted.data.downscale > 1.0:
-        from anisdf.data.dataparsers import first_image
-        from anisdf.data.images import capped_downscale, image_size
+        from anisdf.data.dataparsers import image_size_of
+        from anisdf.data.images import capped_downscale
 
-        size = image_size(first_image(data, wanted.data.images_dir))
+        size = image_size_of(data, wanted.data.images_dir)
         wanted.data.downscale = capped_downscale(*size, wanted.data.downscale, wanted.data.min_size)
     have, want = _flat(saved.to_dict()), _flat(wanted.to_dict())
     for key, value in want.items():

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from anisdf.data.dataparsers import blender, colmap, instant_ngp, llff, neus
-from anisdf.data.dataparsers._common import ParsedScene
+from anisdf.data.dataparsers._common import ParsedScene, image_size
 from anisdf.data.loader import build_scene
 from anisdf.data.scene import Scene
 from anisdf.errors import DataError
@@ -109,10 +109,10 @@ def _only_split(parsed: ParsedScene, split: str) -> ParsedScene:
     )
 
 
-def first_image(path: str | Path, images_dir: str = "") -> Path:
-    """The dataset's first image file as :func:`load_scene` reads it (from ``images_dir`` when given)."""
+def image_size_of(path: str | Path, images_dir: str = "") -> tuple[int, int]:
+    """``(W, H)`` of the dataset's images as :func:`load_scene` reads them (from ``images_dir`` when given)."""
     image = parse_dataset(path).image_paths[0]
-    return _other_folder(image, Path(path) / images_dir) if images_dir else image
+    return image_size(_other_folder(image, Path(path) / images_dir) if images_dir else image)
 
 
 def _other_folder(image: Path, folder: Path) -> Path:
@@ -124,4 +124,4 @@ def _other_folder(image: Path, folder: Path) -> Path:
     raise DataError(folder / image.name, f"image missing (data.images_dir has no counterpart of {image.name})")
 
 
-__all__ = ["PARSERS", "ParsedScene", "detect_format", "first_image", "load_scene", "parse_dataset"]
+__all__ = ["PARSERS", "ParsedScene", "detect_format", "image_size_of", "load_scene", "parse_dataset"]
