@@ -19,6 +19,7 @@ from typing import Any
 from anisdf import __version__
 from anisdf.cli.options import _Parser, add_options, cli_fields, read_options
 from anisdf.errors import AnisdfError
+from anisdf.utils.allocator import tune_malloc
 
 COMMANDS = {
     "inspect": "validate a dataset and print a JSON summary",
@@ -91,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     mod, opts, ns = parse(argv)
     logging.basicConfig(level=logging.DEBUG if ns.debug else logging.INFO, format="%(message)s")
+    tune_malloc()  # before the command's first tensors: later steps reuse the heap instead of fresh pages
     try:
         return int(mod.run(opts) or 0)
     except AnisdfError as e:
