@@ -508,3 +508,21 @@ def test_optimiser_weight_decay_is_the_releases():
     """The release builds AdamW without a weight decay argument, so PyTorch's default applies (NOTES.md)."""
     default = torch.optim.AdamW([torch.zeros(1, requires_grad=True)]).defaults["weight_decay"]
     assert load_config(None, []).optim.weight_decay == default == 0.01
+
+
+def test_a_training_render_without_samples_backpropagates():
+    """Rays that miss every occupied cell give a step with no samples: its loss backpropagates (nothing to learn,
+    no error; a 0-d bias in ``addmv`` once gave a 0-d SDF for 0 rows, and its backward failed)."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12",
+                                    "renderer.grid_resolution=32"])
+    torch.manual_seed(0)
+    model = AniSDFModel(cfg)
+    o, d = torch.full((64, 3), 3.0), F.normalize(torch.ones(64, 3), dim=-1)  # outside the sphere, pointing away
+    with model.cached_weights():
+        out = model.render_rays(o, d, torch.ones(64, 3), train=True, generator=torch.Generator().manual_seed(0))
+        terms = model.losses(out, torch.ones(64, 3), None, torch.Generator().manual_seed(0))
+    assert out.n_samples == 0
+    terms["total"].backward()
+    assert all(p.grad is None or not p.grad.any() for p in model.parameters())

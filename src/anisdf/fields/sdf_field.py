@@ -50,7 +50,7 @@ def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor], 
         h, s = softplus_slope(F.linear(h, w, b), BETA, fast)
         slopes.append(s)
     w_sdf = weights[-1][0]
-    out0 = torch.addmv(biases[-1][0], h, w_sdf)
+    out0 = torch.addmv(biases[-1][0].expand(h.shape[0]), h, w_sdf)  # a 0-d bias: a 0-d result for 0 rows
     g = w_sdf.expand(h.shape[0], -1)
     for w, s in zip(reversed(weights[:-1]), reversed(slopes), strict=True):
         g = (g * s) @ w
@@ -231,7 +231,7 @@ class SDFField(nn.Module):
                 for layer in b.layers[:-1]:
                     h = softplus(layer(h), BETA, b.fast)
                 last = b.layers[-1]
-                parts.append(torch.addmv(last.bias[0], h, last.weight[0]))
+                parts.append(torch.addmv(last.bias[0].expand(h.shape[0]), h, last.weight[0]))
             return self._fuse(parts) * self.radius
 
     def with_gradient(self, x: Tensor, create_graph: bool, fd_eps: float | None = None
