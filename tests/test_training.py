@@ -222,6 +222,17 @@ def test_nan_loss_stops_with_clear_message_and_keeps_checkpoint(toy_scene, tmp_p
     assert checkpoint.load_checkpoint(ck)["state"]["step"] == 2
 
 
+def test_a_vanished_surface_stops_with_a_clear_message(toy_scene, tmp_path):
+    """An SDF positive everywhere leaves the occupancy grid empty and no ray a sample: the run stops, saying so,
+    instead of training on nothing."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=5"])
+    with torch.no_grad():
+        for b in tr.model.geometry.branches:
+            b.layers[-1].bias[0] += 10.0
+    with pytest.raises(TrainingDiverged, match="surface vanished"):
+        tr.train_step()
+
+
 def test_checkpoint_write_failure_keeps_previous(tmp_path, monkeypatch):
     path = tmp_path / "ck.pt"
     checkpoint.atomic_save({"a": 1}, path)

@@ -257,6 +257,10 @@ class Trainer:
         if st.step % rc.grid_update_every == 0:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
             model.update_grid(self.gen, full=warm, job=self.dist)
+            if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
+                raise TrainingDiverged(
+                    f"step {st.step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), "
+                    "so no ray has samples left to train on. Start again with another train.seed or a lower optim.lr.")
         f = lr_factor(st.schedule_step, cfg)
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
