@@ -43,3 +43,12 @@ def test_every_command_tunes_before_it_runs(monkeypatch: pytest.MonkeyPatch, tmp
     monkeypatch.setattr(anisdf.cli, "tune_malloc", lambda: calls.append(1) or True)
     assert anisdf.cli.main(["inspect", str(tmp_path / "missing")]) == 2  # a user error, after the tuning
     assert calls == [1]
+
+
+def test_a_ray_worker_tunes_before_its_task(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    from anisdf.orchestration import cluster
+
+    calls = []
+    monkeypatch.setattr(cluster, "tune_malloc", lambda: calls.append("tune") or True)
+    result, _ = cluster.attempt(lambda: calls.append("task") or {"ok": 1}, tmp_path / "run", {}, remote=True)
+    assert result == {"ok": 1} and calls == ["tune", "task"]

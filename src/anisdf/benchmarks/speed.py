@@ -21,6 +21,7 @@ import torch
 
 from anisdf.benchmarks.encoding import sync
 from anisdf.config import load_config
+from anisdf.utils.allocator import tune_malloc
 from anisdf.utils.options import float_at_least, option
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "bunny_plastic"
@@ -145,6 +146,7 @@ def run_bench(options: BenchOptions | None = None, **changes: Any) -> dict:
     on_cuda = dev.type == "cuda"
     result: dict[str, Any] = {"date": date.today().isoformat(), "machine": platform.machine(),
                               "cpu_threads": torch.get_num_threads(), "torch": torch.__version__,
+                              "malloc": "fixed" if tune_malloc() else "default",  # utils/allocator.py
                               "device": str(dev), "preset": preset,
                               "cuda": torch.cuda.get_device_name(dev) if on_cuda else None}
     enc = bench_encoding(n_points=1 << (18 if on_cuda else 16), repeats=3, device=dev)

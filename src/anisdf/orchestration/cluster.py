@@ -28,6 +28,7 @@ import torch
 
 from anisdf.errors import AnisdfError
 from anisdf.run_dir import RunDir
+from anisdf.utils.allocator import tune_malloc
 from anisdf.utils.options import option
 
 log = logging.getLogger("anisdf")
@@ -119,6 +120,8 @@ def attempt(fn: Callable[..., dict[str, Any]], run: Path, kwargs: dict[str, Any]
 
     if remote and not logging.getLogger().handlers:  # a Ray worker: its log lines go to the driver
         logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if remote:  # a Ray worker did not start through the command line, which sets these
+        tune_malloc()
     run = Path(run)
     run.mkdir(parents=True, exist_ok=True)
     info = {"attempt": int(read_attempt(run).get("attempt", 0)) + 1, "host": socket.gethostname(), "pid": os.getpid(),

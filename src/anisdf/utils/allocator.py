@@ -2,11 +2,12 @@
 
 A CPU step allocates and frees hundreds of MB in blocks of a few MB (per-sample activations, hash-table gradients).
 glibc serves blocks above its mmap threshold with fresh ``mmap`` calls and returns the top of its heap to the system
-whenever more than its trim threshold is free there; both thresholds move with what the process last freed. So later
-steps of a cpu-quick run kept asking the kernel for zeroed pages: up to 8000 page faults and 20 ms of system time a
-step, about a tenth of it (benchmarks/RESULTS.md, "Allocator"). :func:`tune_malloc` fixes the thresholds: blocks up to
-32 MB come from the heap, the heap keeps up to 1 GB of free memory, and it grows 256 MB at a time. The process holds
-on to memory it has used once, which a training run reuses every step anyway.
+whenever more than its trim threshold is free there; both thresholds move with what the process last freed. So the
+late steps of a process that only trains (no validation renders, whose large frees raise the thresholds) kept asking
+the kernel for zeroed pages: up to 8000 page faults and 13 ms of system time a step, about 15% of it
+(benchmarks/RESULTS.md, "Allocator"). :func:`tune_malloc` fixes the thresholds: blocks up to 32 MB come from the
+heap, the heap keeps up to 1 GB of free memory, and it grows 256 MB at a time. The process holds on to memory it
+has used once, which a training run reuses every step anyway.
 
 ``ANISDF_MALLOC=default`` leaves glibc's own settings; other C libraries (macOS, musl) are left alone.
 """
