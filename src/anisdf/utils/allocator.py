@@ -2,10 +2,10 @@
 
 A CPU step allocates and frees hundreds of MB in blocks of a few MB (per-sample activations, hash-table gradients).
 glibc serves blocks above its mmap threshold with fresh ``mmap`` calls and returns the top of its heap to the system
-whenever more than its trim threshold is free there; both thresholds move with what the process last freed. So the
-late steps of a process that only trains (no validation renders, whose large frees raise the thresholds) kept asking
-the kernel for zeroed pages: up to 8000 page faults and 13 ms of system time a step, about 15% of it
-(benchmarks/RESULTS.md, "Allocator"). :func:`tune_malloc` fixes the thresholds: blocks up to 32 MB come from the
+whenever more than its trim threshold is free there; both thresholds move with what the process last freed. Late
+steps timed from a checkpoint kept asking the kernel for zeroed pages: up to 8000 page faults and 13 ms of system
+time a step, about 15% of it (benchmarks/RESULTS.md, "Allocator"; a whole 10-minute run trained as many steps
+either way). :func:`tune_malloc` fixes the thresholds: blocks up to 32 MB come from the
 heap, the heap keeps up to 1 GB of free memory, and it grows 256 MB at a time. The process holds on to memory it
 has used once, which a training run reuses every step anyway.
 
