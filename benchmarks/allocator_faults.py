@@ -16,13 +16,13 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 
 def _measure(data: Path, preset: str, run: Path | None, before: int, steps: int) -> dict[str, float]:
     import torch
 
+    from anisdf.benchmarks.speed import time_train_steps
     from anisdf.config import load_config
     from anisdf.data.dataparsers import load_scene
     from anisdf.training.checkpoint import load_checkpoint
@@ -36,11 +36,10 @@ def _measure(data: Path, preset: str, run: Path | None, before: int, steps: int)
             tr.load_state_dict(load_checkpoint(run / "checkpoints" / "last.pt"))
         for _ in range(before if run is None else 5):
             tr.train_step()
-        r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-        for _ in range(steps):
-            tr.train_step()
-        dt, r1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF)
-    return {"ms": 1e3 * dt / steps, "faults": (r1.ru_minflt - r0.ru_minflt) / steps,
+        r0 = resource.getrusage(resource.RUSAGE_SELF)
+        timed = time_train_steps(tr, steps, 0, torch.device("cpu"))
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return {"ms": timed["ms_per_step"], "faults": (r1.ru_minflt - r0.ru_minflt) / steps,
             "sys_ms": 1e3 * (r1.ru_stime - r0.ru_stime) / steps}
 
 
