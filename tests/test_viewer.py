@@ -356,7 +356,7 @@ def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_pa
             frames = viewer.stats.frames
             page.mouse.move(x, y)
             page.mouse.down()
-            page.mouse.move(x + 200, y + 40, steps=10)
+            page.mouse.move(x + 300, y + 60, steps=10)  # 200 px: 3.36 quiet, 2.58 in a loaded full run
             page.mouse.up()
             _wait(lambda: viewer.stats.frames > frames + 1)
             time.sleep(1.0)
