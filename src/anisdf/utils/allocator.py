@@ -5,9 +5,9 @@ glibc serves blocks above its mmap threshold with fresh ``mmap`` calls and retur
 whenever more than its trim threshold is free there; both thresholds move with what the process last freed. Late
 steps timed from a checkpoint kept asking the kernel for zeroed pages: up to 8000 page faults and 13 ms of system
 time a step, about 15% of it (benchmarks/RESULTS.md, "Allocator"; a whole 10-minute run trained as many steps
-either way). :func:`tune_malloc` fixes the thresholds: blocks up to 32 MB come from the
-heap, the heap keeps up to 1 GB of free memory, and it grows 256 MB at a time. The process holds on to memory it
-has used once, which a training run reuses every step anyway.
+either way). :func:`tune_malloc` fixes the thresholds: blocks up to 32 MB come from the heap, the heap keeps up
+to 1 GB of free memory, and it grows 256 MB at a time. The process holds on to memory it has used once, which a
+training run reuses every step anyway.
 
 ``ANISDF_MALLOC=default`` leaves glibc's own settings; other C libraries (macOS, musl) are left alone.
 """
