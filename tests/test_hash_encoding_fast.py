@@ -214,6 +214,69 @@ def test_differentiating_the_table_gradient_matches_reference(fast, with_x: bool
         _assert_close(a, b, 5e-5 * getattr(fast, "slack", 1.0), name)
 
 
+def _encoding_and_jacobian_grads(with_jacobian: bool, x, table, spec, w, u, q, n_levels, parts):
+    """A loss on the encoding (weights ``w``) and on ``J^T u`` (weights ``q``; the normal's route), by the kernel's
+    Jacobian or by the reference and autograd's double backward: the values and the table gradient."""
+    k = n_levels * spec.features_per_level
+    if with_jacobian:
+        grid = HashGrid(spec, backend="fast")
+        with torch.no_grad():
+            grid.table.copy_(table)
+        tt = grid.table
+        out, jac = grid.encode_with_jacobian(x, n_levels)
+        gx = torch.bmm(u[:, None, :k], jac).squeeze(1)
+    else:
+        tt = table.clone().requires_grad_(True)
+        xx = x.clone().requires_grad_(True)
+        out = hash_encode_reference(xx, tt, spec, n_levels)
+        (gx,) = torch.autograd.grad(out, xx, u[:, :k], create_graph=True)
+    loss = (out * w[:, :k]).sum() if "enc" in parts else 0.0
+    loss = loss + ((gx * q).sum() if "jac" in parts else 0.0)
+    loss.backward()
+    return [out.detach(), gx.detach(), tt.grad]
+
+
+@pytest.mark.parametrize(("spec", "n", "n_levels", "parts"), [
+    (SMALL, 3000, 6, ("enc", "jac")),  # threads, every level
+    (SMALL, 60, 4, ("enc", "jac")),    # one thread, the first levels only
+    (SMALL, 800, 6, ("jac",)),         # only the Jacobian's gradient (the encoding's None)
+    (SMALL, 800, 6, ("enc",)),
+    *[(GridSpec(n_levels=4, features_per_level=f, log2_hashmap_size=10, base_resolution=6), 400, 4, ("enc", "jac"))
+      for f in (1, 4, 8)],
+])
+def test_encoding_with_its_jacobian_matches_autograd(kernel, spec, n, n_levels, parts) -> None:
+    """``encode_with_jacobian``: the features, ``J^T u`` and the table gradient of a loss on both equal the
+    reference's and autograd's double backward (the training route of the analytic normal)."""
+    gen = torch.Generator().manual_seed(n + spec.features_per_level)
+    x = _points(n, spec, gen)
+    table = 0.5 * torch.randn(spec.n_params, spec.features_per_level, generator=gen)
+    w, u = (torch.randn(x.shape[0], spec.output_dim, generator=gen) for _ in range(2))
+    q = torch.randn(x.shape[0], 3, generator=gen)
+    with _one_thread():
+        ref = _encoding_and_jacobian_grads(False, x, table, spec, w, u, q, n_levels, parts)
+    got = _encoding_and_jacobian_grads(True, x, table, spec, w, u, q, n_levels, parts)
+    for name, a, b in zip(("values", "J^T u", "grad table"), got, ref, strict=True):
+        assert float(b.abs().max()) > 0, name
+        _assert_close(a, b, 5e-5, name)
+    assert torch.all(got[2][spec.offsets[n_levels]:] == 0)
+
+
+def test_jacobian_transpose_product_gradients_match_finite_differences() -> None:
+    gen = torch.Generator().manual_seed(2)
+    jac = torch.randn(7, 5, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    g = torch.randn(7, 5, generator=gen, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(ops.jacobian_transpose_product, (jac, g))
+    torch.testing.assert_close(ops.jacobian_transpose_product(jac, g), torch.einsum("nkd,nk->nd", jac, g))
+
+
+def test_jacobian_route_applies_only_where_it_is_exact(kernel) -> None:
+    """The reference backend, and points that need their own gradient, take the autograd route (None)."""
+    x = torch.rand(100, 3)
+    assert HashGrid(SMALL, backend="torch").encode_with_jacobian(x) is None
+    assert HashGrid(SMALL).encode_with_jacobian(x.requires_grad_(True)) is None
+    assert HashGrid(SMALL).encode_with_jacobian(x.detach()) is not None
+
+
 @pytest.mark.parametrize("backend", ["cpu", "triton"])
 def test_table_gradient_is_skipped_when_only_normals_are_asked(request, backend: str) -> None:
     real = request.getfixturevalue("kernel" if backend == "cpu" else "triton_ops")

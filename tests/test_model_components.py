@@ -12,6 +12,8 @@ from anisdf.config import load_config
 from anisdf.errors import AnisdfError
 from anisdf.fields.asg import asg_encode, asg_frames
 from anisdf.fields.encodings import sh_encoding
+from anisdf.fields.hash_grid import cpu_kernel
+from anisdf.fields.hash_grid.dispatch import HashGrid
 from anisdf.fields.hash_grid.reference import GridSpec, corner_indices, hash_encode_reference, trilinear_weights
 from anisdf.fields.sdf_field import SDFField
 from anisdf.model_components import losses as L
@@ -188,6 +190,49 @@ def test_closed_form_normals_and_their_training_gradients_match_autograd(kind, f
     sdf_e, _, g_e = field.with_gradient(x, create_graph=False)
     torch.testing.assert_close(g_e, g_r.detach(), rtol=1e-7, atol=1e-9)
     assert not (sdf_e.requires_grad or g_e.requires_grad)
+
+
+@pytest.mark.parametrize(("kind", "all_levels"), [("fused", True), ("fused", False), ("single", True)])
+def test_kernel_jacobian_route_matches_the_autograd_route(kind, all_levels, monkeypatch):
+    """With the compiled CPU kernel the closed-form normal reads the grid's Jacobian
+    (:meth:`HashGrid.encode_with_jacobian`) instead of a backward pass through the encoding: the SDF, its gradient,
+    the features and every parameter's gradient of a training-like loss equal the autograd route's."""
+    if cpu_kernel.kernel_module() is None:
+        pytest.skip(f"compiled hash-grid kernel unavailable: {cpu_kernel.kernel_info()['error']}")
+    cfg = load_config(None, [f"geometry.kind={kind}", "geometry.log2_hashmap_size=12", "geometry.n_levels=6",
+                             "geometry.coarse_levels=4", "geometry.max_resolution=64"])
+    torch.manual_seed(0)
+    field = SDFField(cfg.geometry)
+    with torch.no_grad():
+        for b in field.branches:
+            b.grid.table.normal_(0.0, 0.1)
+            b.set_step(10**6 if all_levels else 0, field.cfg)
+            for lay in b.layers:
+                lay.parametrizations.weight.original1.normal_(0.0, 0.3)
+    assert all_levels or field.branches[-1].n_active < field.branches[-1].n_levels
+    x = (torch.rand(3000, 3) * 2.0 - 1.0) * 0.9
+    rows = torch.arange(0, 3000, 7)
+
+    def run():
+        field.zero_grad()
+        q = field.query(x, create_graph=True)
+        feat = q.feature(rows)
+        (L.eikonal_loss(q.grad) + q.sdf.square().mean() + feat.sin().mean()).backward()
+        return [q.sdf.detach(), q.grad.detach(), feat.detach()], {n: p.grad.clone() for n, p in
+                                                                  field.named_parameters()}
+
+    taken = []
+    route = HashGrid.encode_with_jacobian
+    monkeypatch.setattr(HashGrid, "encode_with_jacobian", lambda *a: taken.append(route(*a)) or taken[-1])
+    values, grads = run()
+    assert taken and all(t is not None for t in taken)
+    monkeypatch.setattr(HashGrid, "encode_with_jacobian", lambda *a: None)
+    values_r, grads_r = run()
+    for a, b in zip(values, values_r, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    for n, g in grads_r.items():
+        assert float(g.abs().max()) > 0, n
+        torch.testing.assert_close(grads[n], g, rtol=1e-4, atol=1e-5 * float(g.abs().max()), msg=n)
 
 
 def test_finite_difference_normals_match_analytic_gradient():

@@ -28,6 +28,7 @@ from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
 from anisdf.fields.hash_grid import GridSpec, HashGrid
+from anisdf.fields.hash_grid.ops import jacobian_transpose_product
 from anisdf.fields.softplus import softplus, softplus_slope
 
 BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
@@ -115,8 +116,23 @@ class SDFBranch(nn.Module):
         compiled), then its grid part carried back through the encoding.
 
         With ``create_graph`` the outputs are differentiable w.r.t. the parameters (training), else none is.
-        Positions are sample points, constants: no gradient flows back to ``x``.
+        Positions are sample points, constants: no gradient flows back to ``x``. Where the compiled CPU kernel
+        applies, the encoding comes with its Jacobian ``J`` (:meth:`HashGrid.encode_with_jacobian`) and the grid part
+        is ``J^T g``: no backward pass here, and training's backward scatters into the table once, not twice.
         """
+        u = (x.detach() + 1.0) * 0.5
+        with torch.set_grad_enabled(create_graph):
+            with_jac = self.grid.encode_with_jacobian(u, self.n_active)
+            if with_jac is not None:
+                enc, jac = with_jac
+                k = enc.shape[1]
+                if k < self.n_levels * self.features:
+                    enc = F.pad(enc, (0, self.n_levels * self.features - k))
+                out0, hidden, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
+                                      [lay.bias for lay in self.layers], self.fast)
+                g_enc = jacobian_transpose_product(jac, g[:, 3:3 + k])
+                # d u / d x of the grid's input clamp((x + 1) / 2), as autograd has it
+                return out0, hidden, g[:, :3] + g_enc * (((u >= 0.0) & (u <= 1.0)) * 0.5)
         with torch.enable_grad():
             xg = x.detach().requires_grad_(True)
             enc = self.encode(xg)

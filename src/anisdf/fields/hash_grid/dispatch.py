@@ -23,7 +23,13 @@ from torch import Tensor, nn
 
 from anisdf.errors import AnisdfError
 from anisdf.fields.hash_grid import cpu_kernel
-from anisdf.fields.hash_grid.ops import apply_kernels, kernel_inputs, kernels_disabled, short_error
+from anisdf.fields.hash_grid.ops import (
+    apply_kernels,
+    encode_with_jacobian,
+    kernel_inputs,
+    kernels_disabled,
+    short_error,
+)
 from anisdf.fields.hash_grid.reference import EncodeFn, GridSpec, hash_encode_reference
 
 log = logging.getLogger(__name__)
@@ -195,3 +201,17 @@ class HashGrid(nn.Module):
     def forward(self, x: Tensor, n_levels: int | None = None) -> Tensor:
         """Features ``[N, L * F]`` of ``x`` in ``[0, 1]^3``; ``n_levels``: of the first levels only."""
         return self._encode(x.clamp(0.0, 1.0), self.table, self.spec, n_levels)
+
+    def encode_with_jacobian(self, x: Tensor, n_levels: int | None = None) -> tuple[Tensor, Tensor] | None:
+        """Features ``[N, n * F]`` of the first ``n = n_levels`` levels and their Jacobian ``[N, n * F, 3]`` w.r.t.
+        the clamped point, in one pass of the compiled CPU kernel; ``None`` where it does not apply (the
+        ``torch`` backend, another device, a point that needs its own gradient): then use :meth:`forward` and
+        autograd. The Jacobian is differentiable w.r.t. the table, so a loss on ``jac^T g`` trains it."""
+        if self.backend == "torch" or x.requires_grad or x.device.type != "cpu":
+            return None
+        if not kernel_inputs(x, self.table, self.spec):
+            return None
+        ops = cpu_kernel.kernel_module()
+        if ops is None or not hasattr(ops, "encode_forward_jacobian"):
+            return None
+        return encode_with_jacobian(x.clamp(0.0, 1.0), self.table, self.spec, ops, n_levels)
