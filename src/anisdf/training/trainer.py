@@ -260,7 +260,8 @@ class Trainer:
             if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
                 raise TrainingDiverged(
                     f"step {st.step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), "
-                    "so no ray has samples left to train on. Start again with another train.seed or a lower optim.lr.")
+                    "so no ray has samples left to train on. Start again with another train.seed, or a lower optim.lr "
+                    "or optim.lr_variance (the NeuS sharpness growing too fast can set it off).")
         f = lr_factor(st.schedule_step, cfg)
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f
