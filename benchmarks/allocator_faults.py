@@ -22,18 +22,14 @@ from pathlib import Path
 def _measure(data: Path, preset: str, run: Path | None, before: int, steps: int) -> dict[str, float]:
     import torch
 
-    from anisdf.benchmarks.speed import time_train_steps
-    from anisdf.config import load_config
-    from anisdf.data.dataparsers import load_scene
-    from anisdf.training.checkpoint import load_checkpoint
+    from anisdf.benchmarks.speed import step_timing_inputs, time_train_steps
     from anisdf.training.trainer import Trainer
 
-    cfg = load_config(preset, ["train.val_every=0", "train.ckpt_every=0", "train.max_minutes=0"])
-    scene = load_scene(data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
+    cfg, scene, ck = step_timing_inputs(data, preset, run)
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), torch.device("cpu"), progress=False)
-        if run is not None:
-            tr.load_state_dict(load_checkpoint(run / "checkpoints" / "last.pt"))
+        if ck is not None:
+            tr.load_state_dict(ck)
         for _ in range(before if run is None else 5):
             tr.train_step()
         r0 = resource.getrusage(resource.RUSAGE_SELF)

@@ -20,11 +20,9 @@ from pathlib import Path
 
 import torch
 
-from anisdf.config import load_config
-from anisdf.data.dataparsers import load_scene
+from anisdf.benchmarks.speed import step_timing_inputs
 from anisdf.errors import AnisdfError
 from anisdf.fields.hash_grid.dispatch import HashGrid
-from anisdf.training.checkpoint import load_checkpoint
 from anisdf.training.trainer import Trainer
 from anisdf.utils.allocator import tune_malloc
 
@@ -39,13 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=6)
     args = ap.parse_args(argv)
     tune_malloc()  # as every anisdf command does
-    overrides = ["train.val_every=0", "train.ckpt_every=0", "train.max_minutes=0"]
-    if args.run:
-        overrides.append("renderer.grid_update_every=1000000")
     try:
-        cfg = load_config(args.preset, overrides)
-        scene = load_scene(args.data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
-        ck = load_checkpoint(args.run / "checkpoints" / "last.pt") if args.run else None
+        cfg, scene, ck = step_timing_inputs(args.data, args.preset, args.run,
+                                            ["renderer.grid_update_every=1000000"] if args.run else [])
     except AnisdfError as err:
         ap.error(str(err))
     jacobian = HashGrid.encode_with_jacobian

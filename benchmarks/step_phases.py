@@ -22,10 +22,8 @@ from typing import Any
 import torch
 
 import anisdf.models.anisdf as model_module
-from anisdf.config import load_config
-from anisdf.data.dataparsers import load_scene
+from anisdf.benchmarks.speed import step_timing_inputs
 from anisdf.errors import AnisdfError
-from anisdf.training.checkpoint import load_checkpoint
 from anisdf.training.trainer import Trainer
 
 
@@ -39,10 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = ap.parse_intermixed_args(argv)
     try:
-        cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", "train.max_minutes=0",
-                                        *args.overrides])
-        scene = load_scene(args.data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
-        ck = load_checkpoint(args.run / "checkpoints" / "last.pt") if args.run else None
+        cfg, scene, ck = step_timing_inputs(args.data, args.preset, args.run, args.overrides)
     except AnisdfError as err:
         ap.error(str(err))
     spent: collections.Counter[str] = collections.Counter()

@@ -15,14 +15,17 @@ import time
 from dataclasses import dataclass
 from datetime import date
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from anisdf.benchmarks.encoding import sync
-from anisdf.config import load_config
+from anisdf.config import Config, load_config
 from anisdf.utils.allocator import tune_malloc
 from anisdf.utils.options import float_at_least, option
+
+if TYPE_CHECKING:
+    from anisdf.data.scene import Scene
 
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "bunny_plastic"
 """The scene of the time-to-PSNR run when ``--data`` is not given and the folder is there (else a synthetic one)."""
@@ -68,6 +71,18 @@ def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, dev
     with tempfile.TemporaryDirectory() as tmp:
         tr = Trainer(cfg, scene, Path(tmp), device, progress=False)
         return {"backend": backend, **time_train_steps(tr, steps, warmup, device)}
+
+
+def step_timing_inputs(data: Path, preset: str, run: Path | None,
+                       overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, Scene, dict[str, Any] | None]:
+    """The configuration, scene and optional checkpoint (``run``'s last) of a step-timing benchmark: ``preset`` with
+    validation, checkpoints and the time budget off, then ``overrides``; the scene as the preset trains it."""
+    from anisdf.data.dataparsers import load_scene
+    from anisdf.training.checkpoint import load_checkpoint
+
+    cfg = load_config(preset, ["train.val_every=0", "train.ckpt_every=0", "train.max_minutes=0", *overrides])
+    scene = load_scene(data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
+    return cfg, scene, (load_checkpoint(run / "checkpoints" / "last.pt") if run is not None else None)
 
 
 def time_train_steps(tr, steps: int, warmup: int, device: torch.device) -> dict[str, Any]:
