@@ -94,7 +94,10 @@ class SDFBranch(nn.Module):
     def encode(self, x: Tensor) -> Tensor:
         """Hash-grid features of ``x`` in [-1, 1]^3; levels not yet switched on read as zero (and are not looked
         up: early in training a third of the encoding's work)."""
-        enc = self.grid((x + 1.0) * 0.5, self.n_active)
+        return self._pad_levels(self.grid((x + 1.0) * 0.5, self.n_active))
+
+    def _pad_levels(self, enc: Tensor) -> Tensor:
+        """The active levels' features ``[N, n_active * F]`` with zeros for the levels not yet switched on."""
         if self.n_active == self.n_levels:  # every level on (most of training): no padding, no copy
             return enc
         return F.pad(enc, (0, (self.n_levels - self.n_active) * self.features))
@@ -123,23 +126,20 @@ class SDFBranch(nn.Module):
         u = (x.detach() + 1.0) * 0.5
         with torch.set_grad_enabled(create_graph):
             with_jac = self.grid.encode_with_jacobian(u, self.n_active)
-            if with_jac is not None:
-                enc, jac = with_jac
-                k = enc.shape[1]
-                if k < self.n_levels * self.features:
-                    enc = F.pad(enc, (0, self.n_levels * self.features - k))
-                out0, hidden, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
-                                      [lay.bias for lay in self.layers], self.fast)
-                g_enc = jacobian_transpose_product(jac, g[:, 3:3 + k])
-                # d u / d x of the grid's input clamp((x + 1) / 2), as autograd has it
-                return out0, hidden, g[:, :3] + g_enc * (((u >= 0.0) & (u <= 1.0)) * 0.5)
-        with torch.enable_grad():
-            xg = x.detach().requires_grad_(True)
-            enc = self.encode(xg)
+        if with_jac is not None:
+            enc, jac = self._pad_levels(with_jac[0]), with_jac[1]
+        else:
+            with torch.enable_grad():
+                xg = x.detach().requires_grad_(True)
+                enc = self.encode(xg)
         with torch.set_grad_enabled(create_graph):
             out0, hidden, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
                                   [lay.bias for lay in self.layers], self.fast)
-            (g_enc,) = torch.autograd.grad(enc, xg, g[:, 3:], create_graph=create_graph)
+            if with_jac is not None:
+                # J^T g, times d u / d x of the grid's input clamp((x + 1) / 2) as autograd has it
+                g_enc = jacobian_transpose_product(jac, g[:, 3:3 + jac.shape[1]]) * (((u >= 0.0) & (u <= 1.0)) * 0.5)
+            else:
+                (g_enc,) = torch.autograd.grad(enc, xg, g[:, 3:], create_graph=create_graph)
             return out0, hidden, g[:, :3] + g_enc
 
     def feature(self, hidden: Tensor) -> Tensor:

@@ -112,10 +112,13 @@ class _Encode(torch.autograd.Function):
 def apply_kernels(x: Tensor, table: Tensor, spec: GridSpec, ops: Any, n_levels: int | None = None) -> Tensor:
     """Encode ``x`` [N, 3] with the backend module ``ops`` (differentiable twice, see the module docstring); the
     first ``n_levels`` levels only when given (the kernels take the level rows they are handed)."""
-    levels = level_table(spec, x.device)
-    if n_levels is not None and n_levels < spec.n_levels:
-        levels = levels[:n_levels]
-    return _Encode.apply(x.contiguous(), table, levels, spec.log2_hashmap_size, ops)
+    return _Encode.apply(x.contiguous(), table, _levels(spec, x.device, n_levels), spec.log2_hashmap_size, ops)
+
+
+def _levels(spec: GridSpec, device: torch.device, n_levels: int | None) -> Tensor:
+    """The kernels' level rows (:func:`level_table`), the first ``n_levels`` only when given."""
+    levels = level_table(spec, device)
+    return levels[:n_levels] if n_levels is not None and n_levels < spec.n_levels else levels
 
 
 class _EncodeJacobian(torch.autograd.Function):
@@ -144,10 +147,8 @@ def encode_with_jacobian(x: Tensor, table: Tensor, spec: GridSpec, ops: Any, n_l
                          ) -> tuple[Tensor, Tensor]:
     """The encoding of ``x`` [N, 3] and its Jacobian w.r.t. ``x`` [N, L * F, 3] by the backend ``ops`` (which must
     have ``encode_forward_jacobian``: the CPU kernel); gradients reach the table, not ``x``."""
-    levels = level_table(spec, x.device)
-    if n_levels is not None and n_levels < spec.n_levels:
-        levels = levels[:n_levels]
-    return _EncodeJacobian.apply(x.detach().contiguous(), table, levels, spec.log2_hashmap_size, ops)
+    return _EncodeJacobian.apply(x.detach().contiguous(), table, _levels(spec, x.device, n_levels),
+                                 spec.log2_hashmap_size, ops)
 
 
 class _JacobianTransposeProduct(torch.autograd.Function):
