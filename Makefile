@@ -41,8 +41,10 @@ demo: $(VENV)/.installed
 lint: $(VENV)/.installed
 	$(BIN)/ruff check src tests benchmarks
 
+# One worker a core (pytest-xdist), each on one thread (tests/conftest.py); a file's tests stay on one worker, so its
+# module fixtures are built once. `pytest tests` alone runs them in one process, as before.
 test: lint $(VENV)/.cluster
-	$(BIN)/python -m pytest -rs tests
+	$(BIN)/python -m pytest -rs -n auto --dist loadfile tests
 
 # Into $(NODE_DIR)/node_modules (gitignored), where scripts/gltf_validate.mjs looks for it; once for each version.
 gltf-validator: $(NODE_DIR)/.gltf-validator-$(GLTF_VALIDATOR)

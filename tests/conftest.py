@@ -14,6 +14,11 @@ from anisdf.data.synthetic import make_synthetic_scene
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
+# Under pytest-xdist (`make test` runs one worker a core) each worker keeps to one thread: the toy scenes' tensors
+# are too small for two threads to pay, and two workers with two threads each would fight for the cores.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
+
 
 @pytest.fixture(scope="session")
 def toy_scene(tmp_path_factory) -> Path:
