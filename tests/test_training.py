@@ -120,6 +120,35 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
     assert run["status"] == "done" and run["schedule"] == "time" and run["step"] == steps
 
 
+def test_the_sharpness_learns_per_schedule_step_under_a_time_budget(toy_scene, tmp_path):
+    """``optim.lr_variance`` is a rate per schedule step: under a budget the variance group's learning rate is
+    multiplied by the schedule steps each optimiser step advances (1.5 s a step of a 60 s budget laid over 100
+    schedule steps: 2.5; at most 4); without a budget it is the rate itself."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=100", "train.max_minutes=1"])
+    _FakeClock(tr, 1.5)
+    ratios = []
+    step = tr.train_step
+
+    def recorded() -> dict[str, float]:
+        stats = step()
+        model_lr, var_lr = (g["lr"] for g in tr.opt.param_groups[:2])
+        ratios.append(var_lr / model_lr)
+        return stats
+
+    tr.train_step = recorded  # type: ignore[method-assign]
+    assert tr.fit()["step"] == 40
+    o = tr.cfg.optim
+    assert ratios[0] == pytest.approx(o.lr_variance / o.lr)  # nothing spent yet: pace 1
+    assert ratios[1:] == pytest.approx([2.5 * o.lr_variance / o.lr] * 39)
+    fast = _trainer(toy_scene, tmp_path / "fast", ["train.max_steps=1000", "train.max_minutes=1"])
+    _FakeClock(fast, 6.0)  # 100 schedule steps a step: held at 4
+    fast.fit(max_steps=3)
+    assert fast.opt.param_groups[1]["lr"] / fast.opt.param_groups[0]["lr"] == pytest.approx(4 * o.lr_variance / o.lr)
+    plain = _trainer(toy_scene, tmp_path / "steps", ["train.max_steps=3"])
+    plain.fit()
+    assert plain.opt.param_groups[1]["lr"] / plain.opt.param_groups[0]["lr"] == pytest.approx(o.lr_variance / o.lr)
+
+
 def test_a_first_kernel_build_is_not_spent_from_the_budget(toy_scene, tmp_path):
     """The lazily built hash-grid kernel loads before the budget's clock starts: a one-minute first build on a new
     machine leaves the schedule and the step count of a 1-minute budget as they are."""
@@ -207,6 +236,25 @@ def test_same_seed_same_result(toy_scene, tmp_path):
         t.fit()
         runs.append(t.model.geometry.branches[0].grid.table.detach().clone())
     assert torch.equal(runs[0], runs[1])
+
+
+def test_the_sharpness_stays_under_its_cap_and_can_come_back_down(toy_scene, tmp_path):
+    """``renderer.inv_s_max`` bounds the NeuS sharpness by projecting its parameter after each step: at a learning
+    rate that drives it up fast it sits at the cap instead of running past it, and the parameter, not only the
+    clamped value, stays there, so that a gradient pointing down moves it at once."""
+    cap = 40.0
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=30", "optim.lr_variance=0.2",
+                                                 f"renderer.inv_s_max={cap}"])
+    v = tr.model.variance
+    seen = []
+    for _ in range(30):
+        tr.train_step()
+        seen.append(float(v()))
+    assert max(seen) <= cap * (1 + 1e-5) and max(seen) > 0.9 * cap, seen  # it reached the cap and stayed under
+    assert float(v.variance) * v.scale <= np.log(cap) + 1e-5  # the parameter itself is held at the cap
+    with torch.enable_grad():
+        (-v()).backward()  # d(-s)/dv < 0 at the cap: the gradient is not cut by the clamp
+    assert float(v.variance.grad) < 0
 
 
 def test_nan_loss_stops_with_clear_message_and_keeps_checkpoint(toy_scene, tmp_path):

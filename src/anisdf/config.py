@@ -167,8 +167,8 @@ class RendererConfig:
     max_samples_per_ray: int = 1024
     variance_init: float = 0.3
     variance_scale: float = 10.0
-    """inv_s = exp(variance_scale * variance)."""
     inv_s_max: float = 1e4
+    """inv_s = exp(variance_scale * variance), kept <= inv_s_max by projecting the parameter after each step."""
     cos_anneal_steps: int = 20000
     background_model: Literal["nerf", "environment"] = "nerf"
     """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360 scenes) or

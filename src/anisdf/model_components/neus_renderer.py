@@ -26,6 +26,13 @@ class Variance(nn.Module):
     def forward(self) -> Tensor:
         return torch.exp(self.variance * self.scale).clamp(1e-6, self.max_inv_s)
 
+    @torch.no_grad()
+    def project_(self) -> None:
+        """Keep ``s <= max_inv_s`` after an optimiser step by projecting ``v`` (a few ulps inside, where the clamp in
+        :meth:`forward` still passes the gradient). That clamp alone would let ``v`` run on past the cap (Adam's
+        momentum), where no gradient reaches it to bring it back."""
+        self.variance.clamp_(max=math.log(self.max_inv_s) / self.scale * (1.0 - 1e-6))
+
 
 def neus_alpha(sdf: Tensor, grad: Tensor, dirs: Tensor, dt: Tensor, inv_s: Tensor, cos_anneal: float) -> Tensor:
     """Section opacity from the SDF at the midpoint and its directional derivative."""

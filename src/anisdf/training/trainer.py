@@ -3,7 +3,9 @@
 The schedule (level activation, cos anneal, loss ramps, learning rate) reads one position, counted in the
 schedule's own steps (``train.max_steps`` long): the step itself, or, with a time budget (``train.max_minutes``), the
 fraction of the budget spent times ``max_steps``, so that the schedule always ends at the deadline whatever the
-machine's speed (:meth:`Trainer.schedule_step`).
+machine's speed (:meth:`Trainer.schedule_step`). The NeuS sharpness's learning rate also follows that position
+(:meth:`Trainer.schedule_pace`): Adam moves its one parameter about one learning rate a step, so it would otherwise
+sharpen with the number of steps a machine manages in the budget, not with the schedule.
 
 A run folder holds ``config.yaml``, ``run.json`` (dataset path), ``checkpoints/last.pt``, ``tb/`` (TensorBoard),
 ``val/`` (validation images) and ``log.jsonl``. Checkpoints are atomic and carry every random state, so
@@ -192,6 +194,18 @@ class Trainer:
         pos = min(self.cfg.train.max_steps, int(st.train_seconds / budget * self.cfg.train.max_steps))
         return max(pos, st.schedule_step)
 
+    def schedule_pace(self) -> float:
+        """Schedule steps per optimiser step so far: 1 without a time budget; with one, the budget's (unrounded)
+        position over the steps taken, within [0.1, 4]. The variance group's learning rate is multiplied by it, so
+        that ``optim.lr_variance`` is a rate per schedule step: 90 s of cpu-quick on 2 cores (about 450 steps of its
+        1500) sharpen 3.3x faster a step, 10 minutes (about 3300 steps) 0.45x. At most 4: a budget of a few dozen
+        steps would otherwise move the sharpness by a large factor each step, and lose the surface. From the
+        checkpointed step and seconds, so a resume continues exactly; the same on every rank (rank 0's seconds)."""
+        st, budget = self.state, self.budget_seconds
+        if budget <= 0 or st.step == 0:
+            return 1.0
+        return min(max(st.train_seconds / budget * self.cfg.train.max_steps / st.step, 0.1), 4.0)
+
     def schedule_done(self) -> bool:
         if self.budget_seconds > 0:
             return self.state.train_seconds >= self.budget_seconds
@@ -263,8 +277,9 @@ class Trainer:
                     "so no ray has samples left to train on. Start again with another train.seed, or a lower optim.lr "
                     "or optim.lr_variance (the NeuS sharpness growing too fast can set it off).")
         f = lr_factor(st.schedule_step, cfg)
+        pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
-            g["lr"] = base * f
+            g["lr"] = base * f * (pace if g.get("name") == "variance" else 1.0)
         batch = self.next_batch(st.n_rays)
         origins, dirs, codes = self.camera_rays(batch)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_amp), model.cached_weights():
@@ -299,6 +314,7 @@ class Trainer:
                 f"(running mean {st.loss_ema:.4g}); the last good checkpoint {self.ckpt_path} is intact. "
                 "Try a lower optim.lr or loss weights.")
         self.opt.step()
+        self.model.variance.project_()
         n_samples, n_marched = counts
         # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4); the budget
         # is per rank, the counts of all ranks (so every rank draws as many rays)
