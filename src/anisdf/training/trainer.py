@@ -188,11 +188,14 @@ class Trainer:
     def schedule_step(self) -> int:
         """The schedule's position: the step, or with a time budget ``max_steps * seconds spent / budget`` (capped at
         ``max_steps``, and never below an earlier position)."""
-        st, budget = self.state, self.budget_seconds
-        if budget <= 0:
+        st = self.state
+        if self.budget_seconds <= 0:
             return st.step
-        pos = min(self.cfg.train.max_steps, int(st.train_seconds / budget * self.cfg.train.max_steps))
-        return max(pos, st.schedule_step)
+        return max(min(self.cfg.train.max_steps, int(self._budget_position())), st.schedule_step)
+
+    def _budget_position(self) -> float:
+        """Under a time budget, the schedule's unrounded position: ``max_steps * seconds spent / budget``."""
+        return self.state.train_seconds / self.budget_seconds * self.cfg.train.max_steps
 
     def schedule_pace(self) -> float:
         """Schedule steps per optimiser step so far: 1 without a time budget; with one, the budget's (unrounded)
@@ -201,10 +204,9 @@ class Trainer:
         1500) sharpen 3.3x faster a step, 10 minutes (about 3300 steps) 0.45x. At most 4: a budget of a few dozen
         steps would otherwise move the sharpness by a large factor each step, and lose the surface. From the
         checkpointed step and seconds, so a resume continues exactly; the same on every rank (rank 0's seconds)."""
-        st, budget = self.state, self.budget_seconds
-        if budget <= 0 or st.step == 0:
+        if self.budget_seconds <= 0 or self.state.step == 0:
             return 1.0
-        return min(max(st.train_seconds / budget * self.cfg.train.max_steps / st.step, 0.1), 4.0)
+        return min(max(self._budget_position() / self.state.step, 0.1), 4.0)
 
     def schedule_done(self) -> bool:
         if self.budget_seconds > 0:
