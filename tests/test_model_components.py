@@ -433,6 +433,36 @@ def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_sa
     assert (outs[1].opacity - outs[0].opacity).abs().max() < 2e-3
 
 
+def test_refining_every_fourth_update_keeps_the_same_march_grid_for_fewer_queries(monkeypatch):
+    """renderer.grid_refine_every: between refinements only the cells that filled are refined and the children of
+    emptied ones dropped; for a field that does not change, every update leaves the march grid refining at each update
+    gives, from fewer SDF queries."""
+    from anisdf.models.anisdf import AniSDFModel
+
+    models, queries = {}, {}
+    for every in (1, 4):
+        cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12",
+                                        "renderer.grid_resolution=32", "renderer.grid_refine=2",
+                                        f"renderer.grid_refine_every={every}"])
+        torch.manual_seed(0)
+        models[every] = m = AniSDFModel(cfg)
+        with torch.no_grad():
+            m.variance.variance.fill_(math.log(300.0) / cfg.renderer.variance_scale)  # inv_s = 300
+        sdf, queries[every] = m.geometry.distance, []
+        monkeypatch.setattr(m.geometry, "distance", lambda x, sdf=sdf, q=queries[every]: (q.append(len(x)), sdf(x))[1])
+    gens = {every: torch.Generator().manual_seed(0) for every in models}
+    refills = 0
+    for i in range(9):
+        before = models[1].grid.occupied.clone()
+        for every, m in models.items():
+            m.update_grid(gens[every], full=i == 0)
+        assert torch.equal(models[4].grid.occupied, models[1].grid.occupied)
+        assert torch.equal(models[4].march_grid.occupied, models[1].march_grid.occupied), f"update {i}"
+        refills += int((models[1].grid.occupied & ~before).sum()) if i else 0
+    assert refills > 0  # cells flicker in and out of the coarse grid (random points): the partial path ran
+    assert sum(queries[4]) < 0.8 * sum(queries[1])
+
+
 @pytest.mark.parametrize("segment", [1, 3, 8, 1000])
 def test_early_ray_termination_keeps_the_samples_of_the_one_pass_pruning(segment):
     """prune_occluded_progressive queries the SDF a few samples a ray at a time and stops a ray once it is opaque:

@@ -64,16 +64,14 @@ class GeometryConfig:
     n_levels: int = 16
     """L: number of levels of the fine grid (and of the single grid)."""
     coarse_levels: int = 10
-    """m: the coarse grid holds levels 1..m; the fine grid holds levels 1..L and starts with its first m active, all
-    of them trainable from step 0 (the release's layout; Eq. 5 writes the fine set as m..L). The paper's "level m"
-    ablation moves both grids."""
+    """m: the coarse grid holds levels 1..m; the fine grid holds levels 1..L, its first m active and all trainable
+    from step 0 (the release's layout; Eq. 5 writes m..L). The paper's "level m" ablation moves both grids."""
     coarse_start_levels: int = 4
     """Active levels of the coarse grid (of the single grid with ``kind=single``) at the start."""
     level_start_step: int = 5000
     level_every: int = 1000
-    """One more level on each grid every ``level_every`` steps after ``level_start_step`` (the first at
-    ``level_start_step + level_every``): coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (the release's
-    schedule)."""
+    """One more level on each grid every ``level_every`` steps after ``level_start_step`` (the first at its sum):
+    coarse 4 -> 10 and fine 10 -> 16, all active at step 11000 (the release's schedule)."""
     features_per_level: int = 2
     log2_hashmap_size: int = 19
     base_resolution: int = 32
@@ -151,17 +149,18 @@ class RendererConfig:
     """Bounding sphere of the object in normalised coordinates."""
     grid_resolution: int = 128
     grid_refine: int = 1
-    """Training rays march the occupancy grid refined by this factor: at each update the occupied cells are split
-    and children that cannot reach the surface's density band are dropped (occupancy_grid.refined), so a ray
-    crosses a thinner shell of samples in front of the surface. 1: the grid itself. It applies once the grid has
-    at most 400k / factor^3 occupied cells (``models/anisdf.GRID_REFINE_BUDGET``; early on, most cells are), and
-    only where a refined cell is at least two march steps wide (``march_steps``)."""
+    """Training rays march the occupancy grid refined by this factor: the occupied cells are split and children that
+    cannot reach the surface's density band dropped (occupancy_grid.refined), so a ray crosses a thinner shell of
+    samples. 1: the grid itself. Once the grid has at most 400k / factor^3 occupied cells (``models/anisdf.
+    GRID_REFINE_BUDGET``), where a refined cell is at least two march steps wide (``march_steps``)."""
+    grid_refine_every: int = 4
+    """Grid updates between two refinements (``grid_refine``); between them the children of cells that emptied are
+    dropped and only the cells that filled are refined. 1: at every update."""
     grid_update_every: int = 16
     grid_warmup_steps: int = 256
     occupancy_threshold: float = 0.01
-    """A cell is empty when the NeuS density of any SDF value it can hold stays below this fraction of the density's
-    peak: ``|sdf| > cell diagonal + ln(4 / threshold) / inv_s`` (the logistic density is ``<= 4 e^(-s|f|)`` of
-    its peak)."""
+    """A cell is empty when the NeuS density of any SDF value it can hold stays below this fraction of its peak:
+    ``|sdf| > cell diagonal + ln(4 / threshold) / inv_s`` (the logistic density is ``<= 4 e^(-s|f|)`` of its peak)."""
     march_steps: int = 1024
     """Step size = sqrt(3) * 2 * radius / march_steps."""
     max_samples_per_ray: int = 1024

@@ -87,28 +87,30 @@ class OccupancyGrid(nn.Module):
         self.n_updates += 1
         return self.occupied.float().mean().item()
 
-    def upsampled(self, factor: int) -> Tensor:
-        """The occupancy of a grid ``factor`` times finer whose children copy their parent's [(r f)^3] bool."""
+    def upsampled(self, factor: int, occupied: Tensor | None = None) -> Tensor:
+        """The occupancy of a grid ``factor`` times finer whose children copy their parent's [(r f)^3] bool (of
+        ``occupied``, a mask of this grid's cells, if given)."""
         r, f = self.resolution, int(factor)
-        occ = self.occupied.view(r, r, r)
+        occ = (self.occupied if occupied is None else occupied).view(r, r, r)
         for axis in range(3):
             occ = occ.repeat_interleave(f, dim=axis)
         return occ.reshape(-1)
 
     @torch.no_grad()
     def refined(self, sdf_fn: Callable[[Tensor], Tensor], inv_s: float, factor: int, lipschitz: float = 1.0,
-                chunk: int = 2**16) -> OccupancyGrid:
+                chunk: int = 2**16, occupied: Tensor | None = None) -> OccupancyGrid:
         """A grid ``factor`` times finer in which a cell is occupied when its parent is and, seen from outside, the
         SDF at its centre could reach zero within the cell or leave non-negligible density: ``sdf(centre) <=
         lipschitz * cell_diagonal + band / inv_s``. From the centre a 1-Lipschitz SDF needs half a diagonal; the
         default allows for a gradient up to 2 long (the eikonal term holds it near 1), as :meth:`update` does.
         Children inside the object are all kept: NeuS' discrete opacity of a ray going deeper stays high at any
         depth (``alpha ~ 1 - exp(-s |cos| dt)``), so a ray that is not yet opaque at the surface gathers the rest
-        there, as in the parent grid. Only the children of occupied cells are evaluated."""
+        there, as in the parent grid. Only the children of occupied cells (of ``occupied``, a mask of this grid's
+        cells, if given) are evaluated."""
         r, f = self.resolution, int(factor)
         fine = OccupancyGrid(r * f, self.radius, self.band).to(self.occupied.device)
         fine.n_updates.copy_(self.n_updates)
-        parents = self.occupied.nonzero()[:, 0]
+        parents = (self.occupied if occupied is None else occupied).nonzero()[:, 0]
         dev = parents.device
         pi, pj, pk = parents // (r * r), (parents // r) % r, parents % r
         sub = torch.stack(torch.meshgrid(*[torch.arange(f, device=dev)] * 3, indexing="ij"), -1).reshape(-1, 3)

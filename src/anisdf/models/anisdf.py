@@ -182,9 +182,10 @@ class AniSDFModel(nn.Module):
         bg = self.background if isinstance(self.background, BackgroundNeRF) and self.background.grid_resolution \
             else None
         if job is None or job.is_main:
+            before = self.grid.occupied.clone() if self.march_grid is not None else None
             self.grid.update(self.geometry.distance, float(self.variance()), generator, full=full)
             if self.march_grid is not None:
-                self._refine_march_grid(self.march_grid)
+                self._refine_march_grid(self.march_grid, before)
             if bg is not None:
                 bg.update_grid(generator, full=full)
         if job is not None:
@@ -206,18 +207,26 @@ class AniSDFModel(nn.Module):
             coarse = OccupancyGrid(self.grid.resolution, self.radius, self.grid.band)
             coarse.occupied.copy_(state[prefix + "grid.occupied"])
             state[key] = coarse.upsampled(self.march_grid.resolution // self.grid.resolution)
-            state[prefix + "march_grid.n_updates"] = state[prefix + "grid.n_updates"].clone()
+            state[prefix + "march_grid.n_updates"] = torch.zeros_like(state[prefix + "grid.n_updates"])  # a copy
 
     @torch.no_grad()
-    def _refine_march_grid(self, fine: OccupancyGrid) -> None:
-        """``renderer.grid_refine``: ``fine`` becomes the grid refined (:meth:`OccupancyGrid.refined`), or its plain
-        copy at the finer resolution while refining would cost more than ``GRID_REFINE_BUDGET`` queries."""
-        f = fine.resolution // self.grid.resolution
+    def _refine_march_grid(self, fine: OccupancyGrid, before: Tensor) -> None:
+        """``renderer.grid_refine``: ``fine`` becomes the grid refined (:meth:`OccupancyGrid.refined`) every
+        ``renderer.grid_refine_every`` updates; between them, the children of cells that emptied are dropped and only
+        cells that filled (``before``: the occupancy before this update) are refined. While refining would cost more
+        than ``GRID_REFINE_BUDGET`` queries, the plain copy at the finer resolution. ``fine.n_updates``: the grid's
+        update count at the last refinement (0: a copy)."""
+        f, since = fine.resolution // self.grid.resolution, int(self.grid.n_updates - fine.n_updates)
         if int(self.grid.occupied.sum()) * f**3 > GRID_REFINE_BUDGET:
             fine.occupied.copy_(self.grid.upsampled(f))
+            fine.n_updates.zero_()
+        elif 0 < int(fine.n_updates) and since < self.cfg.renderer.grid_refine_every:
+            filled = self.grid.occupied & ~before
+            fresh = self.grid.refined(self.geometry.distance, float(self.variance()), f, occupied=filled).occupied
+            fine.occupied.logical_and_(self.grid.upsampled(f)).logical_or_(fresh)
         else:
             fine.occupied.copy_(self.grid.refined(self.geometry.distance, float(self.variance()), f).occupied)
-        fine.n_updates.copy_(self.grid.n_updates)
+            fine.n_updates.copy_(self.grid.n_updates)
 
     @contextlib.contextmanager
     def cached_weights(self) -> Iterator[None]:
