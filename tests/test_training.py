@@ -23,7 +23,7 @@ TINY = [
     "geometry.n_levels=8", "geometry.coarse_levels=5", "geometry.coarse_start_levels=3",
     "geometry.level_start_step=40", "geometry.level_every=20",
     "geometry.log2_hashmap_size=14", "geometry.base_resolution=8", "geometry.max_resolution=128",
-    "geometry.feature_dim=15", "geometry.hidden_dim=32", "geometry.encoding_backend=torch",
+    "geometry.feature_dim=15", "geometry.hidden_dim=32",
     "appearance.asg_theta=4", "appearance.asg_phi=8", "appearance.par_hidden=32", "appearance.ref_hidden=32",
     "appearance.view_hidden=32", "appearance.weight_hidden=32",
     "renderer.grid_resolution=32", "renderer.march_steps=256", "renderer.samples_per_step=4096",
