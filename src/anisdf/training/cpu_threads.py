@@ -2,16 +2,18 @@
 
 On a CPU that another process shares, torch's default of one thread per core is the slowest choice: every parallel
 region waits for the thread whose core is taken (on 2 cores with one kept busy, cpu-quick ran 433 steps in 10
-minutes against 1346 on the quiet machine). :class:`ThreadTuner` times a few steps at each candidate count, keeps the
-fastest (samples per second), and measures again every ``every`` steps, since other programs come and go. It is
-used only under a time budget, whose schedule already follows the clock: step-based runs keep one thread count and
-stay bit-exact.
+minutes against 1346 on the quiet machine). :class:`ThreadTuner` keeps the thread count with the most samples per
+second: it times the other counts now and then against the current one's recent rate, drops a count after two steps
+when it is clearly slower, and probes less often while the probes keep confirming its choice (other programs come and
+go; a probe of the wrong count costs steps). It is used only under a time budget, whose schedule already follows the
+clock: step-based runs keep one thread count and stay bit-exact.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -19,16 +21,24 @@ log = logging.getLogger("anisdf")
 
 
 class ThreadTuner:
-    """Cycle: ``probe`` steps at each candidate thread count, then ``every`` steps at the fastest one."""
+    """Run at ``current`` threads; after ``warmup`` steps and then every ``interval`` steps, time each other candidate
+    for ``probe`` steps (2 if even its best is under ``abort`` of the current count's recent median) and keep the
+    fastest. ``interval`` starts at ``every`` and doubles, up to ``max_backoff`` times, while probes keep the count."""
 
     def __init__(self, max_threads: int, probe: int = 8, every: int = 200, warmup: int = 20,
-                 set_threads: Callable[[int], None] = torch.set_num_threads) -> None:
+                 set_threads: Callable[[int], None] = torch.set_num_threads, abort: float = 0.67,
+                 max_backoff: int = 8) -> None:
         self.candidates = sorted({max_threads, max(1, max_threads // 2), 1}, reverse=True) if max_threads > 1 else []
-        self.probe, self.every, self.warmup = probe, every, warmup
+        self.probe, self.every, self.warmup, self.abort = probe, every, warmup, abort
+        self.max_interval = every * max_backoff
         self.set_threads = set_threads
         self.current = max_threads
+        self.interval = every
+        self._next = probe  # exploit steps before the next probe: the first comes once the current rate is known
+        self._recent: deque[float] = deque(maxlen=probe)  # rates of the last exploit steps
+        self._queue: list[int] = []  # candidates still to time in this probe
         self._rates: dict[int, list[float]] = {}
-        self._probing = 0  # index into candidates while probing, -1 while exploiting
+        self._home = max_threads  # the count the probe started from
         self._count = 0
         self._skip = True  # the first step after a switch pays for waking threads up: not timed
         self._steps = 0
@@ -53,24 +63,35 @@ class ThreadTuner:
         if self._skip:
             self._skip = False
             return
-        self._count += 1
-        if self._probing >= 0:
-            n = self.candidates[self._probing]
-            self._rates.setdefault(n, []).append(samples / max(seconds, 1e-9))
-            if self._count >= self.probe:
-                self._count = 0
-                self._probing += 1
-                if self._probing < len(self.candidates):
-                    self._use(self.candidates[self._probing])
-                else:
-                    self._probing = -1
-                    med = {k: sorted(v)[len(v) // 2] for k, v in self._rates.items()}
-                    best = max(med, key=med.get)
-                    log.debug("cpu threads: %s samples/s -> %d threads",
-                              {k: round(v) for k, v in med.items()}, best)
-                    self._use(best)
-                    self._rates.clear()
-        elif self._count >= self.every:
-            self._count = 0
-            self._probing = 0
-            self._use(self.candidates[0])
+        rate = samples / max(seconds, 1e-9)
+        if not self._queue:  # exploiting
+            self._recent.append(rate)
+            self._count += 1
+            if self._count >= self._next and len(self._recent) == self.probe:
+                self._count, self._home, self._rates = 0, self.current, {}
+                self._queue = [n for n in self.candidates if n != self.current]
+                self._use(self._queue[0])
+            return
+        rates = self._rates.setdefault(self._queue[0], [])
+        rates.append(rate)
+        ref = _median(self._recent)
+        if len(rates) < self.probe and (len(rates) < 2 or max(rates) >= self.abort * ref):
+            return
+        self._queue.pop(0)
+        if self._queue:
+            self._use(self._queue[0])
+            return
+        med = {n: _median(v) for n, v in self._rates.items()} | {self._home: ref}
+        best = max(med, key=med.__getitem__)
+        log.debug("cpu threads: %s samples/s -> %d threads", {k: round(v) for k, v in med.items()}, best)
+        if best == self._home:  # confirmed: probe less often
+            self.interval = min(2 * self.interval, self.max_interval)
+        else:
+            self.interval = self.every
+            self._recent.clear()
+        self._next = self.interval
+        self._use(best)
+
+
+def _median(values: Sequence[float]) -> float:
+    return sorted(values)[len(values) // 2]
