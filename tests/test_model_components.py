@@ -435,8 +435,8 @@ def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_sa
 
 def test_refining_every_fourth_update_keeps_the_same_march_grid_for_fewer_queries(monkeypatch):
     """renderer.grid_refine_every: between refinements only the cells that filled are refined and the children of
-    emptied ones dropped; for a field that does not change, every update leaves the march grid refining at each update
-    gives, from fewer SDF queries."""
+    emptied ones dropped; for a field that does not change, every update leaves the same march grid as refining at
+    each update, from fewer SDF queries."""
     from anisdf.models.anisdf import AniSDFModel
 
     models, queries = {}, {}
