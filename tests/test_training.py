@@ -17,7 +17,7 @@ from anisdf.data.dataparsers import load_scene
 from anisdf.data.synthetic import scene_sdf
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.training import checkpoint
-from anisdf.training.trainer import Trainer
+from anisdf.training.trainer import Trainer, lr_factor
 
 TINY = [
     "geometry.n_levels=8", "geometry.coarse_levels=5", "geometry.coarse_start_levels=3",
@@ -103,7 +103,8 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
     """With ``--max-minutes`` the schedule advances with the budget spent: a slow and a fast machine both end at the
     deadline with every level on, the cos anneal done and the learning rate decayed; the fast one uses its time for
     more steps, not fewer minutes."""
-    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1",
+                                                 "optim.warmup_min_steps=0"])  # (tested below)
     _FakeClock(tr, seconds_per_step)
     lrs = []
     step = tr.train_step
@@ -118,6 +119,26 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
     assert lrs[-1] < 0.2 * base and lrs[-1] == min(lrs[1:])
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["status"] == "done" and run["schedule"] == "time" and run["step"] == steps
+
+
+def test_a_short_budget_warms_up_over_warmup_min_steps_optimiser_steps(toy_scene, tmp_path):
+    """A budget of a few dozen steps laid the whole learning-rate warm-up on its first few (36 s of cpu-quick: 8 steps)
+    and lost the surface. Under a budget the warm-up also spans ``optim.warmup_min_steps`` optimiser steps, the
+    slower of the two ramps; after it the rate is the schedule's. Runs laid on steps keep their schedule."""
+    cfg = load_config("cpu-quick", ["train.max_steps=1000", "optim.warmup_steps=100", "optim.warmup_min_steps=32"])
+    assert lr_factor(50, cfg) == pytest.approx(0.01 + 0.99 * 0.5)
+    assert lr_factor(300, cfg) == pytest.approx(0.1 ** (200 / 900))
+    assert lr_factor(300, cfg, updates=8) == pytest.approx(0.01 + 0.99 * 8 / 32)
+    assert lr_factor(50, cfg, updates=31) == pytest.approx(0.01 + 0.99 * 0.5)
+    assert lr_factor(300, cfg, updates=32) == lr_factor(300, cfg)
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    _FakeClock(tr, 6.0)  # 10 steps; the schedule's 20-step warm-up is over after the first
+    lrs = []
+    step = tr.train_step
+    tr.train_step = lambda: (lambda st: (lrs.append(st["lr"]), st)[1])(step())  # type: ignore[method-assign]
+    assert tr.fit()["step"] == 10
+    base, n = tr.cfg.optim.lr, tr.cfg.optim.warmup_min_steps
+    assert lrs[:5] == pytest.approx([base * (0.01 + 0.99 * k / n) for k in range(5)])
 
 
 def test_the_sharpness_learns_per_schedule_step_under_a_time_budget(toy_scene, tmp_path):

@@ -50,13 +50,16 @@ LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "
 
 
 
-def lr_factor(step: int, cfg: Config) -> float:
-    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end."""
+def lr_factor(step: int, cfg: Config, updates: int | None = None) -> float:
+    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end. Under a
+    time budget (``updates``: the optimiser steps taken) the warm-up also spans ``warmup_min_steps`` of them."""
     o = cfg.optim
-    if step < o.warmup_steps:
-        return 0.01 + 0.99 * step / max(o.warmup_steps, 1)
     span = max(cfg.train.max_steps - o.warmup_steps, 1)
-    return o.final_lr_factor ** (min(step - o.warmup_steps, span) / span)
+    decay = o.final_lr_factor ** (min(max(step - o.warmup_steps, 0), span) / span)
+    ramp = 0.01 + 0.99 * step / max(o.warmup_steps, 1) if step < o.warmup_steps else 1.0
+    if updates is not None and updates < o.warmup_min_steps:
+        ramp = min(ramp, 0.01 + 0.99 * updates / o.warmup_min_steps)
+    return min(ramp, decay) if ramp < 1.0 else decay
 
 
 def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
@@ -278,7 +281,7 @@ class Trainer:
                     f"step {st.step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), "
                     "so no ray has samples left to train on. Start again with another train.seed, or a lower optim.lr "
                     "or optim.lr_variance (the NeuS sharpness growing too fast can set it off).")
-        f = lr_factor(st.schedule_step, cfg)
+        f = lr_factor(st.schedule_step, cfg, st.step if self.budget_seconds > 0 else None)
         pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f * (pace if g.get("name") == "variance" else 1.0)
