@@ -53,7 +53,8 @@ class DataConfig:
     """Centre x,y,z of the region of interest (the sphere the scene is normalised to) in the dataset's own frame and
     units, overriding the automatic one (``anisdf inspect`` prints it); empty: found automatically."""
     roi_radius: float = 0.0
-    """Radius of the region of interest in the dataset's units, overriding the automatic one (0: automatic)."""
+    """Radius of the region of interest in the dataset's units, overriding the automatic one; 0: found
+    automatically."""
 
 
 @dataclass
@@ -169,7 +170,8 @@ class RendererConfig:
     """inv_s = exp(variance_scale * variance), kept <= inv_s_max by projecting the parameter after each step."""
     cos_anneal_steps: int = 20000
     background_model: Literal["nerf", "environment"] = "nerf"
-    """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360) or environment."""
+    """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360 scenes) or
+    environment (a colour per direction)."""
     background_samples: int = 32
     """Samples per ray of the background NeRF, uniform in disparity."""
     background_levels: int = 12
@@ -243,9 +245,6 @@ class OptimConfig:
     weight_decay: float = 0.01
     """AdamW's decoupled weight decay; the release passes none, so PyTorch's default 0.01 applies."""
     warmup_steps: int = 500
-    warmup_min_steps: int = 32
-    """Under a time budget the warm-up also lasts at least this many optimiser steps: 36 s of cpu-quick laid it on 8
-    steps and lost the surface (benchmarks/RESULTS.md, "Short budgets")."""
     final_lr_factor: float = 0.1
 
 

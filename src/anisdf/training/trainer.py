@@ -50,16 +50,13 @@ LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "
 
 
 
-def lr_factor(step: int, cfg: Config, updates: int | None = None) -> float:
-    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end. Under a
-    time budget (``updates``: the optimiser steps taken) the warm-up also spans ``warmup_min_steps`` of them."""
+def lr_factor(step: int, cfg: Config) -> float:
+    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end."""
     o = cfg.optim
+    if step < o.warmup_steps:
+        return 0.01 + 0.99 * step / max(o.warmup_steps, 1)
     span = max(cfg.train.max_steps - o.warmup_steps, 1)
-    decay = o.final_lr_factor ** (min(max(step - o.warmup_steps, 0), span) / span)
-    ramp = 0.01 + 0.99 * step / max(o.warmup_steps, 1) if step < o.warmup_steps else 1.0
-    if updates is not None and updates < o.warmup_min_steps:
-        ramp = min(ramp, 0.01 + 0.99 * updates / o.warmup_min_steps)
-    return min(ramp, decay) if ramp < 1.0 else decay
+    return o.final_lr_factor ** (min(step - o.warmup_steps, span) / span)
 
 
 def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
@@ -200,6 +197,19 @@ class Trainer:
         """Under a time budget, the schedule's unrounded position: ``max_steps * seconds spent / budget``."""
         return self.state.train_seconds / self.budget_seconds * self.cfg.train.max_steps
 
+    def _vanished_message(self) -> str:
+        st, warmup = self.state, self.cfg.optim.warmup_steps
+        msg = (f"step {st.step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), so no "
+               "ray has samples left to train on. Start again with another train.seed, or a lower optim.lr or "
+               "optim.lr_variance (the NeuS sharpness growing too fast can set it off).")
+        pace = self._budget_position() / st.step if self.budget_seconds > 0 and st.step else 1.0
+        if pace > 2 and st.schedule_step >= warmup:
+            steps = max(1, round(warmup / pace))
+            msg += (f" This time budget ran {pace:.0f} schedule steps an optimiser step, so the learning-rate warm-up "
+                    f"(optim.warmup_steps={warmup} schedule steps) lasted about {steps} steps: a longer --max-minutes, "
+                    "or a larger optim.warmup_steps, gives it more (benchmarks/RESULTS.md, \"Short budgets\").")
+        return msg
+
     def schedule_pace(self) -> float:
         """Schedule steps per optimiser step so far: 1 without a time budget; with one, the budget's (unrounded)
         position over the steps taken, within [0.1, 4]. The variance group's learning rate is multiplied by it, so
@@ -277,11 +287,8 @@ class Trainer:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
             model.update_grid(self.gen, full=warm, job=self.dist)
             if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
-                raise TrainingDiverged(
-                    f"step {st.step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), "
-                    "so no ray has samples left to train on. Start again with another train.seed, or a lower optim.lr "
-                    "or optim.lr_variance (the NeuS sharpness growing too fast can set it off).")
-        f = lr_factor(st.schedule_step, cfg, st.step if self.budget_seconds > 0 else None)
+                raise TrainingDiverged(self._vanished_message())
+        f = lr_factor(st.schedule_step, cfg)
         pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f * (pace if g.get("name") == "variance" else 1.0)
