@@ -33,7 +33,7 @@ import torch
 from anisdf.config import Config
 from anisdf.data.rays import RayBatch, RayDataset, eval_background
 from anisdf.data.scene import Scene, capture_switch
-from anisdf.errors import TrainingDiverged
+from anisdf.errors import TrainingDiverged, surface_vanished
 from anisdf.eval.metrics import psnr_from_mse
 from anisdf.models.anisdf import AniSDFModel
 from anisdf.models.per_image import refined_cameras_record
@@ -197,19 +197,6 @@ class Trainer:
         """Under a time budget, the schedule's unrounded position: ``max_steps * seconds spent / budget``."""
         return self.state.train_seconds / self.budget_seconds * self.cfg.train.max_steps
 
-    def _vanished_message(self) -> str:
-        st, warmup = self.state, self.cfg.optim.warmup_steps
-        msg = (f"step {st.step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), so no "
-               "ray has samples left to train on. Start again with another train.seed, or a lower optim.lr or "
-               "optim.lr_variance (the NeuS sharpness growing too fast can set it off).")
-        pace = self._budget_position() / st.step if self.budget_seconds > 0 and st.step else 1.0
-        if pace > 2 and st.schedule_step >= warmup:
-            steps = max(1, round(warmup / pace))
-            msg += (f" This time budget ran {pace:.0f} schedule steps an optimiser step, so the learning-rate warm-up "
-                    f"(optim.warmup_steps={warmup} schedule steps) lasted about {steps} steps: a longer --max-minutes, "
-                    "or a larger optim.warmup_steps, gives it more (benchmarks/RESULTS.md, \"Short budgets\").")
-        return msg
-
     def schedule_pace(self) -> float:
         """Schedule steps per optimiser step so far: 1 without a time budget; with one, the budget's (unrounded)
         position over the steps taken, within [0.1, 4]. The variance group's learning rate is multiplied by it, so
@@ -287,7 +274,9 @@ class Trainer:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
             model.update_grid(self.gen, full=warm, job=self.dist)
             if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
-                raise TrainingDiverged(self._vanished_message())
+                pace = self._budget_position() / st.step if self.budget_seconds > 0 and st.step else 1.0
+                warmup = cfg.optim.warmup_steps
+                raise surface_vanished(st.step, pace, warmup if st.schedule_step >= warmup else 0)
         f = lr_factor(st.schedule_step, cfg)
         pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
