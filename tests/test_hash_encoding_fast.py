@@ -261,6 +261,18 @@ def test_encoding_with_its_jacobian_matches_autograd(kernel, spec, n, n_levels, 
     assert torch.all(got[2][spec.offsets[n_levels]:] == 0)
 
 
+def test_encoding_with_its_jacobian_of_no_points_is_empty_not_an_error(kernel) -> None:
+    """A step can have no sample to query (a short-budget run losing its surface between two grid updates): the
+    encoding, ``J^T u`` and their backward on 0 points are empty and a zero table gradient (the Jacobian's incoming
+    gradient was reshaped to [0, -1], which PyTorch refuses)."""
+    grid = HashGrid(SMALL, backend="fast")
+    out, jac = grid.encode_with_jacobian(torch.zeros(0, 3), 6)
+    assert out.shape == (0, SMALL.output_dim) and jac.shape == (0, SMALL.output_dim, 3)
+    gx = ops.jacobian_transpose_product(jac, torch.ones(0, SMALL.output_dim))
+    (out.sum() + gx.sum()).backward()
+    assert grid.table.grad is not None and not grid.table.grad.any()
+
+
 def test_jacobian_transpose_product_gradients_match_finite_differences() -> None:
     gen = torch.Generator().manual_seed(2)
     jac = torch.randn(7, 5, 3, generator=gen, dtype=torch.float64, requires_grad=True)

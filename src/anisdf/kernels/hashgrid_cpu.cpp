@@ -721,7 +721,7 @@ torch::Tensor encode_jacobian_backward(std::optional<torch::Tensor> g, std::opti
   torch::Tensor gc, gjc;
   if (g.has_value() && g->defined()) gc = grad_input(*g, in.N, in.L * in.F, "incoming gradient g");
   if (gj.has_value() && gj->defined())
-    gjc = grad_input(gj->reshape({in.N, -1}), in.N, in.L * in.F * 3, "incoming gradient of the Jacobian");
+    gjc = grad_input(gj->reshape({in.N, in.L * in.F * 3}), in.N, in.L * in.F * 3, "incoming gradient of the Jacobian");
   auto gt = torch::zeros_like(in.table);
   if (gc.defined() || gjc.defined())
     ANISDF_DISPATCH_F(in.F, jacobian_backward_impl<kF>(in.x.data_ptr<float>(),
