@@ -197,16 +197,17 @@ class Trainer:
         """Under a time budget, the schedule's unrounded position: ``max_steps * seconds spent / budget``."""
         return self.state.train_seconds / self.budget_seconds * self.cfg.train.max_steps
 
-    def schedule_pace(self) -> float:
+    def schedule_pace(self, bounded: bool = True) -> float:
         """Schedule steps per optimiser step so far: 1 without a time budget; with one, the budget's (unrounded)
-        position over the steps taken, within [0.1, 4]. The variance group's learning rate is multiplied by it, so
-        that ``optim.lr_variance`` is a rate per schedule step: 90 s of cpu-quick on 2 cores (about 450 steps of its
-        1500) sharpen 3.3x faster a step, 10 minutes (about 3300 steps) 0.45x. At most 4: a budget of a few dozen
-        steps would otherwise move the sharpness by a large factor each step, and lose the surface. From the
+        position over the steps taken, within [0.1, 4] if ``bounded``. The variance group's learning rate is multiplied
+        by it, so that ``optim.lr_variance`` is a rate per schedule step: 90 s of cpu-quick on 2 cores (about 450 steps
+        of its 1500) sharpen 3.3x faster a step, 10 minutes (about 3300 steps) 0.45x. At most 4: a budget of a few
+        dozen steps would otherwise move the sharpness by a large factor each step, and lose the surface. From the
         checkpointed step and seconds, so a resume continues exactly; the same on every rank (rank 0's seconds)."""
         if self.budget_seconds <= 0 or self.state.step == 0:
             return 1.0
-        return min(max(self._budget_position() / self.state.step, 0.1), 4.0)
+        pace = self._budget_position() / self.state.step
+        return min(max(pace, 0.1), 4.0) if bounded else pace
 
     def schedule_done(self) -> bool:
         if self.budget_seconds > 0:
@@ -274,9 +275,9 @@ class Trainer:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
             model.update_grid(self.gen, full=warm, job=self.dist)
             if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
-                pace = self._budget_position() / st.step if self.budget_seconds > 0 and st.step else 1.0
                 warmup = cfg.optim.warmup_steps
-                raise surface_vanished(st.step, pace, warmup if st.schedule_step >= warmup else 0)
+                raise surface_vanished(st.step, self.schedule_pace(bounded=False),
+                                       warmup if st.schedule_step >= warmup else 0)
         f = lr_factor(st.schedule_step, cfg)
         pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
