@@ -361,20 +361,29 @@ def test_occupancy_grid_keeps_the_shell_of_a_sphere():
     assert not grid.query(torch.zeros(1, 3)).any() and not grid.query(torch.full((1, 3), 0.9)).any()
 
 
-def test_images_on_the_refined_grid_match_the_training_grid_with_fewer_samples(monkeypatch):
-    """renderer.image_grid_resolution: a fixed model's images march a finer grid (occupied cells split, the
-    object's inside kept): the same picture within 8-bit rounding, from fewer SDF queries."""
+def _sphere_and_rays(inv_s: float, n_rays: int, *overrides: str, trained: bool = False):
+    """A new cpu-quick model (its SDF the initial sphere) of sharpness ``inv_s`` with its occupancy grid updated, and
+    ``n_rays`` rays from one camera 3 units away towards it. ``trained``: past the opacity slope's annealing."""
     from anisdf.models.anisdf import AniSDFModel
 
     cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12",
-                                    "renderer.grid_resolution=32", "renderer.image_grid_resolution=128"])
+                                    "renderer.grid_resolution=32", *overrides])
     model = AniSDFModel(cfg).eval()
+    if trained:
+        model.set_step(cfg.renderer.cos_anneal_steps)
     with torch.no_grad():
-        model.variance.variance.fill_(math.log(300.0) / cfg.renderer.variance_scale)  # inv_s = 300
+        model.variance.variance.fill_(math.log(inv_s) / cfg.renderer.variance_scale)
     model.update_grid(torch.Generator().manual_seed(0), full=True)
     gen = torch.Generator().manual_seed(1)
-    o = F.normalize(torch.randn(1, 3, generator=gen), dim=-1).expand(4096, 3) * 3.0
-    d = F.normalize(-o + 0.35 * torch.randn(4096, 3, generator=gen), dim=-1)
+    o = F.normalize(torch.randn(1, 3, generator=gen), dim=-1).expand(n_rays, 3) * 3.0
+    d = F.normalize(-o + 0.35 * torch.randn(n_rays, 3, generator=gen), dim=-1)
+    return model, o, d
+
+
+def test_images_on_the_refined_grid_match_the_training_grid_with_fewer_samples(monkeypatch):
+    """renderer.image_grid_resolution: a fixed model's images march a finer grid (occupied cells split, the
+    object's inside kept): the same picture within 8-bit rounding, from fewer SDF queries."""
+    model, o, d = _sphere_and_rays(300.0, 4096, "renderer.image_grid_resolution=128")
     queries = []
     sdf = model.geometry.distance
     monkeypatch.setattr(model.geometry, "distance", lambda x: (queries.append(x.shape[0]), sdf(x))[1])
@@ -388,6 +397,30 @@ def test_images_on_the_refined_grid_match_the_training_grid_with_fewer_samples(m
     assert sum(queries) < 0.8 * n_coarse
     assert (fine["rgb"] - coarse["rgb"]).abs().max() < 2e-3
     assert (fine["opacity"] - coarse["opacity"]).abs().max() < 2e-3
+
+
+def test_images_query_normals_only_near_the_surface(monkeypatch):
+    """renderer.eval_normal_band: a fixed model's image queries the normal only at samples with ``|sdf| inv_s`` below
+    it; the others' opacity comes from the prune pass's SDF values. On a soft surface (inv_s 30, a real capture's)
+    the same picture within an 8-bit level as with a normal at every sample (band 0, the reference), from fewer
+    normal queries."""
+    torch.manual_seed(0)
+    model, o, d = _sphere_and_rays(30.0, 2048, trained=True)
+    rows = []
+    query = model.geometry.query
+    monkeypatch.setattr(model.geometry, "query", lambda x, *a, **k: (rows.append(x.shape[0]), query(x, *a, **k))[1])
+    images = {}
+    for band in (0.0, 6.0):
+        model.cfg.renderer.eval_normal_band = band
+        rows.clear()
+        images[band] = (model.render_image(o, d, torch.ones_like(d), 1024, fine_grid=True), sum(rows))
+    (every, n_every), (seen, n_seen) = images[0.0], images[6.0]
+    assert (every["opacity"] > 0.5).sum() > 300
+    assert n_seen < 0.85 * n_every
+    for key in ("rgb", "opacity"):  # within one 8-bit level
+        assert (seen[key] - every[key]).abs().max() < 1 / 255, key
+    for key in ("depth", "normal"):  # depths of about 3; the normal map leaves out the unseen samples' normals
+        assert (seen[key] - every[key]).abs().max() < 1e-2, key
 
 
 def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_samples():

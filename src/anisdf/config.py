@@ -53,8 +53,7 @@ class DataConfig:
     """Centre x,y,z of the region of interest (the sphere the scene is normalised to) in the dataset's own frame and
     units, overriding the automatic one (``anisdf inspect`` prints it); empty: found automatically."""
     roi_radius: float = 0.0
-    """Radius of the region of interest in the dataset's units, overriding the automatic one; 0: found
-    automatically."""
+    """Radius of the region of interest in the dataset's units, overriding the automatic one (0: automatic)."""
 
 
 @dataclass
@@ -170,8 +169,7 @@ class RendererConfig:
     """inv_s = exp(variance_scale * variance), kept <= inv_s_max by projecting the parameter after each step."""
     cos_anneal_steps: int = 20000
     background_model: Literal["nerf", "environment"] = "nerf"
-    """Opaque photos without masks, beyond the sphere: nerf (contracted hash-grid NeRF, Mip-NeRF 360 scenes) or
-    environment (a colour per direction)."""
+    """Unmasked photos beyond the sphere: nerf (a contracted hash-grid NeRF) or environment (a colour a direction)."""
     background_samples: int = 32
     """Samples per ray of the background NeRF, uniform in disparity."""
     background_levels: int = 12
@@ -189,6 +187,9 @@ class RendererConfig:
     """Samples whose transmittance (estimated by a cheap SDF-only pass) is below this are dropped; 0 = off."""
     color_weight_eps: float = 1e-4
     """The radiance heads run only on samples whose rendering weight exceeds this."""
+    eval_normal_band: float = 6.0
+    """Images of a fixed model query the normal only where ``|sdf| inv_s`` is below this (0: at every sample); the
+    other samples' opacity comes from the prune pass's SDF values (neus_renderer.estimated_alpha)."""
     eval_chunk_rays: int = 4096
     image_grid_resolution: int = 256
     """Images of a fixed model (eval, render, export) march the occupancy grid refined to at least this many cells a

@@ -73,7 +73,7 @@ def composite(values: Tensor, weights: Tensor, ray_idx: Tensor, n_rays: int) -> 
     return out.index_add_(0, ray_idx, src)
 
 
-def _estimated_alpha(sdf: Tensor, t: Tensor, ray_idx: Tensor, step: float, inv_s: Tensor) -> Tensor:
+def estimated_alpha(sdf: Tensor, t: Tensor, ray_idx: Tensor, step: float, inv_s: Tensor) -> Tensor:
     """Section opacities from SDF values alone: the directional derivative along the ray comes from the next sample
     of the same ray (NeuS' original discretisation); where there is none it is taken as 0 (opacity 0, which can
     only keep more samples)."""
@@ -93,9 +93,9 @@ def _estimated_alpha(sdf: Tensor, t: Tensor, ray_idx: Tensor, step: float, inv_s
 @torch.no_grad()
 def prune_occluded(sdf: Tensor, t: Tensor, ray_idx: Tensor, n_rays: int, step: float, inv_s: Tensor,
                    eps: float) -> Tensor:
-    """Mask of samples whose transmittance, estimated from SDF values alone (:func:`_estimated_alpha`), is still
+    """Mask of samples whose transmittance, estimated from SDF values alone (:func:`estimated_alpha`), is still
     above ``eps``."""
-    _, trans = packed_weights(_estimated_alpha(sdf, t, ray_idx, step, inv_s), ray_idx, n_rays)
+    _, trans = packed_weights(estimated_alpha(sdf, t, ray_idx, step, inv_s), ray_idx, n_rays)
     return trans > eps
 
 
@@ -126,7 +126,7 @@ def prune_occluded_progressive(sdf_at: Callable[[Tensor], Tensor], t: Tensor, ra
         new = idx[torch.isnan(sdf[idx])]
         if new.numel():
             sdf[new] = sdf_at(new)
-        alpha = _estimated_alpha(sdf[idx], t[idx], ray_idx[idx], step, inv_s)
+        alpha = estimated_alpha(sdf[idx], t[idx], ray_idx[idx], step, inv_s)
         own = rank[idx] < k0 + segment  # the look-ahead sample belongs to the next segment
         idx, alpha = idx[own], alpha[own]
         r = ray_idx[idx]

@@ -125,3 +125,19 @@ class OccupancyGrid(nn.Module):
             occ[idx] = sdf_fn(centres) <= thresh
         fine.occupied.copy_(occ)
         return fine
+
+
+def march_grid_state(state: dict, prefix: str, grid: OccupancyGrid, march_grid: OccupancyGrid | None) -> None:
+    """A state dict's march grid (``renderer.grid_refine``) made to fit a model, in place: loading a run saved
+    without one into a model with one, the march grid starts as the loaded ``grid``'s copy at the finer resolution
+    (the next grid update refines it); the other way round, the checkpoint's march grid is left out (it is derived
+    from the grid)."""
+    key = prefix + "march_grid.occupied"
+    if march_grid is None:
+        state.pop(key, None)
+        state.pop(prefix + "march_grid.n_updates", None)
+    elif key not in state and prefix + "grid.occupied" in state:
+        coarse = OccupancyGrid(grid.resolution, grid.radius, grid.band)
+        coarse.occupied.copy_(state[prefix + "grid.occupied"])
+        state[key] = coarse.upsampled(march_grid.resolution // grid.resolution)
+        state[prefix + "march_grid.n_updates"] = torch.zeros_like(state[prefix + "grid.n_updates"])  # a copy

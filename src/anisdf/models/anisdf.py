@@ -22,12 +22,13 @@ from anisdf.model_components.compiled import Compiled
 from anisdf.model_components.neus_renderer import (
     Variance,
     composite,
+    estimated_alpha,
     neus_alpha,
     packed_weights,
     prune_occluded,
     prune_occluded_progressive,
 )
-from anisdf.model_components.occupancy_grid import OccupancyGrid
+from anisdf.model_components.occupancy_grid import OccupancyGrid, march_grid_state
 from anisdf.model_components.ray_marching import march
 from anisdf.models.per_image import TRANSFORM_DIMS, CameraRefinement, ImageCodes, colour_transform
 
@@ -112,7 +113,8 @@ class AniSDFModel(nn.Module):
         fine_res = r.grid_resolution * r.grid_refine
         self.march_grid = (OccupancyGrid(fine_res, r.radius, self.grid.band)
                            if r.grid_refine > 1 and 2.0 * r.radius / fine_res >= 2.0 * self.step_size else None)
-        self.register_load_state_dict_pre_hook(self._march_grid_from_grid)
+        self.register_load_state_dict_pre_hook(
+            lambda _m, state, prefix, *_: march_grid_state(state, prefix, self.grid, self.march_grid))
         # opaque photos without masks: what lies beyond the sphere is learned too
         self.background: nn.Module | None = None
         if learn_background:
@@ -195,20 +197,6 @@ class AniSDFModel(nn.Module):
             if bg is not None:
                 job.broadcast_tensors([bg.density_ema, bg.occupied])
 
-    def _march_grid_from_grid(self, _module: nn.Module, state: dict, prefix: str, *_: object) -> None:
-        """Loading a checkpoint of a run without ``renderer.grid_refine`` into a model with it: the march grid
-        starts as the loaded grid's copy at the finer resolution (the next grid update refines it). The other way
-        round, the checkpoint's march grid is left out (it is derived from the grid)."""
-        key = prefix + "march_grid.occupied"
-        if self.march_grid is None:
-            state.pop(key, None)
-            state.pop(prefix + "march_grid.n_updates", None)
-        elif key not in state and prefix + "grid.occupied" in state:
-            coarse = OccupancyGrid(self.grid.resolution, self.radius, self.grid.band)
-            coarse.occupied.copy_(state[prefix + "grid.occupied"])
-            state[key] = coarse.upsampled(self.march_grid.resolution // self.grid.resolution)
-            state[prefix + "march_grid.n_updates"] = torch.zeros_like(state[prefix + "grid.n_updates"])  # a copy
-
     @torch.no_grad()
     def _refine_march_grid(self, fine: OccupancyGrid, before: Tensor) -> None:
         """``renderer.grid_refine``: ``fine`` becomes the grid refined (:meth:`OccupancyGrid.refined`) every
@@ -251,7 +239,7 @@ class AniSDFModel(nn.Module):
         s = march(origins, dirs, grid, self.radius, self.step_size,
                   rc.max_samples_per_ray, generator if train else None)
         inv_s = self.variance()
-        n_marched = s.n
+        n_marched, sdf_kept = s.n, None
         if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
             if train and origins.device.type in self.one_pass_pruning:
                 with torch.no_grad():  # the SDF row alone (no feature): a third of the MLP's work
@@ -263,21 +251,33 @@ class AniSDFModel(nn.Module):
                     r = s.ray_idx[i]
                     return self.geometry.distance(origins[r] + dirs[r] * s.t[i, None])
 
-                keep, _ = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
-                                                     inv_s.detach(), rc.early_stop_eps)
+                keep, sdf_kept = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
+                                                            inv_s.detach(), rc.early_stop_eps)
+                sdf_kept = sdf_kept[keep]
             s = s.select(keep)
         # index_select: with refined cameras the rays carry gradients, and its backward (index_add) sums the
         # samples of a ray in a fixed order where indexing's (a parallel scatter on CPU) does not: exact resume
         d = dirs.index_select(0, s.ray_idx)
         x = origins.index_select(0, s.ray_idx) + d * s.t[:, None]
-        q = self.geometry.query(x, create_graph=train, fd_eps=self.fd_eps())
+        sub = None
+        if sdf_kept is not None and not train and rc.eval_normal_band > 0 and self.cos_anneal >= 1.0:  # an image of
+            # a trained model: normals only near the surface; elsewhere the opacity from SDF values alone
+            alpha0 = estimated_alpha(sdf_kept, s.t, s.ray_idx, self.step_size, inv_s)
+            sub = (sdf_kept.abs() * inv_s < rc.eval_normal_band).nonzero()[:, 0]
+        q = self.geometry.query(x if sub is None else x[sub], create_graph=train, fd_eps=self.fd_eps())
         sdf, grad = q.sdf, q.grad
         if x.requires_grad:  # rays of refined cameras: the field treats x as a constant, so the SDF's first-order
             # change with the sample point, sdf(x + dx) = sdf + grad . dx, carries the photometric gradient to the poses
             sdf = sdf + (grad.detach() * (x - x.detach())).sum(-1)
         normal = F.normalize(grad, dim=-1)
-        alpha = self.alpha_fn(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
-        weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
+        if sub is None:
+            alpha = self.alpha_fn(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
+            weights, _ = packed_weights(alpha, s.ray_idx, n_rays)
+            w_all, s_all = weights, s  # opacity and depth sum every sample's weight
+        else:
+            alpha = alpha0.index_put((sub,), self.alpha_fn(sdf, grad, d[sub], s.dt[sub], inv_s, self.cos_anneal))
+            w_all, s_all = packed_weights(alpha, s.ray_idx, n_rays)[0], s
+            weights, s, x, d = w_all[sub], s.select(sub), x[sub], d[sub]
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
         if self.image_codes is not None and codes is None:
@@ -286,7 +286,7 @@ class AniSDFModel(nn.Module):
         col_vis = self.color_fn(x[vis] / self.radius, q.feature(vis), normal[vis], d[vis], *extra)
         w_vis, r_vis = weights[vis], s.ray_idx[vis]
         out: dict[str, Tensor] = {}
-        opacity = composite(torch.ones_like(weights), weights, s.ray_idx, n_rays)
+        opacity = composite(torch.ones_like(w_all), w_all, s_all.ray_idx, n_rays)
         if isinstance(self.background, BackgroundNeRF):
             background = self.background(origins, dirs, generator if train else None)["rgb"]
         elif self.background is not None:
@@ -303,7 +303,7 @@ class AniSDFModel(nn.Module):
         out["rgb"] = out["rgb"] + (1.0 - opacity[:, None]) * background
         out["opacity"] = opacity
         if not train:
-            out["depth"] = composite(s.t, weights, s.ray_idx, n_rays)
+            out["depth"] = composite(s_all.t, w_all, s_all.ray_idx, n_rays)
             out["normal"] = composite(normal, weights, s.ray_idx, n_rays)
         # the geometric losses do not move the cameras (no-op detaches without camera refinement)
         samples = TrainingSamples(x.detach(), d.detach(), grad, normal, weights, s.ray_idx) if train else None
