@@ -30,10 +30,14 @@ def main() -> None:
     ap.add_argument("--compare", action="store_true", help="also render on the training grid")
     ap.add_argument("--image-grid", type=int, default=None,
                     help="renderer.image_grid_resolution to use (default: the run's)")
+    ap.add_argument("--normal-band", type=float, default=None,
+                    help="renderer.eval_normal_band to use (default: the run's; 0: a normal at every sample)")
     args = ap.parse_args()
     cfg, model, ck = load_run(args.run)
     if args.image_grid is not None:
         cfg.renderer.image_grid_resolution = args.image_grid
+    if args.normal_band is not None:
+        cfg.renderer.eval_normal_band = args.normal_band
     full = scene_for_run(args.run, cfg, ck, downscale=1.0, split="test")
     long_side = max(full.images.shape[1:3])
     scene = scene_for_run(args.run, cfg, ck, downscale=long_side / args.size, split="test")
