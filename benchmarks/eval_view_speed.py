@@ -20,6 +20,7 @@ import torch
 from anisdf.data.rays import RayDataset, eval_background
 from anisdf.models.views import render_view
 from anisdf.tasks.loading import load_run, scene_for_run
+from anisdf.utils.allocator import tune_malloc
 
 
 def main() -> None:
@@ -33,6 +34,7 @@ def main() -> None:
     ap.add_argument("--normal-band", type=float, default=None,
                     help="renderer.eval_normal_band to use (default: the run's; 0: a normal at every sample)")
     args = ap.parse_args()
+    tune_malloc()  # as every anisdf command does: blocks up to 32 MB reuse the heap (utils/allocator.py)
     cfg, model, ck = load_run(args.run)
     if args.image_grid is not None:
         cfg.renderer.image_grid_resolution = args.image_grid

@@ -28,6 +28,7 @@ from anisdf.config import load_config
 from anisdf.data.dataparsers import load_scene
 from anisdf.errors import AnisdfError
 from anisdf.training.trainer import Trainer
+from anisdf.utils.allocator import tune_malloc
 from anisdf.utils.devices import pick_device
 
 
@@ -43,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--count", action="store_true", help="count operators and host reads of one step instead")
     ap.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = ap.parse_intermixed_args(argv)  # overrides may follow options
+    tune_malloc()  # as every anisdf command does: blocks up to 32 MB reuse the heap (utils/allocator.py)
     try:  # bad device, preset, override or dataset: one line naming it, not a traceback
         dev = pick_device(args.device)
         cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0", *args.overrides])

@@ -25,6 +25,7 @@ import anisdf.models.anisdf as model_module
 from anisdf.benchmarks.speed import step_timing_inputs
 from anisdf.errors import AnisdfError
 from anisdf.training.trainer import Trainer
+from anisdf.utils.allocator import tune_malloc
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("overrides", nargs="*", help="config overrides key=value")
     args = ap.parse_intermixed_args(argv)
+    tune_malloc()  # as every anisdf command does: blocks up to 32 MB reuse the heap (utils/allocator.py)
     try:
         cfg, scene, ck = step_timing_inputs(args.data, args.preset, args.run, args.overrides)
     except AnisdfError as err:
