@@ -260,8 +260,9 @@ class AniSDFModel(nn.Module):
         d = dirs.index_select(0, s.ray_idx)
         x = origins.index_select(0, s.ray_idx) + d * s.t[:, None]
         sub = None
-        if sdf_kept is not None and not train and rc.eval_normal_band > 0 and self.cos_anneal >= 1.0:  # an image of
-            # a trained model: normals only near the surface; elsewhere the opacity from SDF values alone
+        # an image of a trained model: normals only near the surface, elsewhere the opacity from SDF values alone; not
+        # for rays that carry gradients (eval fitting a view's camera): their samples' SDF follow x to first order
+        if sdf_kept is not None and not (train or x.requires_grad) and rc.eval_normal_band > 0 and self.cos_anneal >= 1:
             alpha0 = estimated_alpha(sdf_kept, s.t, s.ray_idx, self.step_size, inv_s)
             sub = (sdf_kept.abs() * inv_s < rc.eval_normal_band).nonzero()[:, 0]
         q = self.geometry.query(x if sub is None else x[sub], create_graph=train, fd_eps=self.fd_eps())
