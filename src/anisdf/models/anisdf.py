@@ -260,16 +260,16 @@ class AniSDFModel(nn.Module):
         d = dirs.index_select(0, s.ray_idx)
         x = origins.index_select(0, s.ray_idx) + d * s.t[:, None]
         sub = None
-        # an image of a trained model: normals only near the surface, elsewhere the opacity from SDF values alone; not
-        # for rays that carry gradients (eval fitting a view's camera): their samples' SDF follow x to first order
-        if sdf_kept is not None and not (train or x.requires_grad) and rc.eval_normal_band > 0 and self.cos_anneal >= 1:
+        if sdf_kept is not None and not train and rc.eval_normal_band > 0 and self.cos_anneal >= 1.0:  # an image of
+            # a trained model: normals only near the surface; elsewhere the opacity from SDF values alone
             alpha0 = estimated_alpha(sdf_kept, s.t, s.ray_idx, self.step_size, inv_s)
             sub = (sdf_kept.abs() * inv_s < rc.eval_normal_band).nonzero()[:, 0]
-        q = self.geometry.query(x if sub is None else x[sub], create_graph=train, fd_eps=self.fd_eps())
+        xq = x if sub is None else x[sub]
+        q = self.geometry.query(xq, create_graph=train, fd_eps=self.fd_eps())
         sdf, grad = q.sdf, q.grad
-        if x.requires_grad:  # rays of refined cameras: the field treats x as a constant, so the SDF's first-order
-            # change with the sample point, sdf(x + dx) = sdf + grad . dx, carries the photometric gradient to the poses
-            sdf = sdf + (grad.detach() * (x - x.detach())).sum(-1)
+        if xq.requires_grad:  # rays of refined cameras, or a camera eval fits: the field treats x as a constant, so
+            # the SDF's first-order change with the point, sdf(x + dx) = sdf + grad . dx, carries the gradient to them
+            sdf = sdf + (grad.detach() * (xq - xq.detach())).sum(-1)
         normal = F.normalize(grad, dim=-1)
         if sub is None:
             alpha = self.alpha_fn(sdf, grad, d, s.dt, inv_s, self.cos_anneal)
