@@ -27,8 +27,9 @@ def fit_left_half(model, data, i: int, seed: int = 0) -> torch.Tensor:
     batch, (h, w) = data.image(i)
     left = view_pixels(h, w, batch.rgb.device, left_half=True)
     code = model.image_codes.mean().detach().clone().requires_grad_(True)
-    fit_to_view(model, batch, left, [code],
-                lambda b: model.render_rays(b.origins, b.directions, b.background, codes=code.expand(len(b), -1)),
+    grid = model.image_grid()  # the grid the scored image marches: the same picture, fewer samples a ray
+    fit_to_view(model, batch, left, [code], lambda b: model.render_rays(b.origins, b.directions, b.background,
+                                                                        codes=code.expand(len(b), -1), grid=grid),
                 FIT_STEPS, FIT_RAYS, FIT_LR, seed)
     return code.detach()
 

@@ -43,8 +43,10 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
     pose = data.cameras.c2w[index : index + 1]
     cam = CameraRefinement(pose, torch.ones(1, dtype=torch.bool), anchor=False).to(pose.device)
 
+    grid = model.image_grid()  # the grid the scored image marches: the same picture, fewer samples a ray
+
     def render(b):
-        return model.render_rays(*cam(b.origins, b.directions, torch.zeros_like(b.cam_idx)), b.background)
+        return model.render_rays(*cam(b.origins, b.directions, torch.zeros_like(b.cam_idx)), b.background, grid=grid)
 
     gen = torch.Generator().manual_seed(seed + 1_000_003)  # not the fit's own draws
     check = batch[pixels[torch.randperm(pixels.numel(), generator=gen)[:CHECK_RAYS].to(pixels.device)]]
