@@ -278,7 +278,7 @@ class AniSDFModel(nn.Module):
         else:
             alpha = alpha0.index_put((sub,), self.alpha_fn(sdf, grad, d[sub], s.dt[sub], inv_s, self.cos_anneal))
             w_all, s_all = packed_weights(alpha, s.ray_idx, n_rays)[0], s
-            weights, s, x, d = w_all[sub], s.select(sub), x[sub], d[sub]
+            weights, s, x, d = w_all[sub], s.select(sub), xq, d[sub]
         # colour only where it can be seen: samples of negligible weight add nothing to any pixel
         vis = (weights.detach() > self.cfg.renderer.color_weight_eps).nonzero()[:, 0]  # indices: one host sync
         if self.image_codes is not None and codes is None:
