@@ -444,6 +444,40 @@ def test_images_whose_rays_carry_gradients(monkeypatch):
     assert rows[0] == rows[1] < rows[2]  # the band applies with gradients too
 
 
+def test_a_camera_fits_normal_equations_hold_the_gradient_of_its_error(monkeypatch):
+    """eval --cameras fit solves for a camera's six numbers by Levenberg-Marquardt on every pixel's Jacobian, built
+    from three backward passes (one a colour channel) and the camera's forward-mode Jacobian: ``J^T r`` is the
+    gradient of half the summed squared error (autograd through the correction), summed alike over chunks."""
+    from anisdf.data.rays import RayBatch
+    from anisdf.models.per_image import CameraRefinement
+    from anisdf.tasks.evaluate import view_cameras
+
+    torch.manual_seed(0)
+    model, o, d = _sphere_and_rays(30.0, 300, trained=True)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    pose = torch.cat([torch.eye(3), o[:1].T], 1)[None]
+    cam = CameraRefinement(pose, torch.ones(1, dtype=torch.bool), anchor=False)
+    zero = torch.zeros(len(o), dtype=torch.long)
+    target = torch.rand(len(o), 3, generator=torch.Generator().manual_seed(2))
+    rays = RayBatch(o, d, target, torch.ones_like(o), None, zero, torch.zeros(len(o), 2))
+    xi = torch.tensor([0.01, -0.02, 0.005, 0.02, 0.01, -0.01])
+
+    def render(o_, d_, background):
+        return model.render_rays(o_, d_, background, grid=model.image_grid())
+
+    monkeypatch.setattr(view_cameras, "FIT_CHUNK", 128)
+    jtj, jtr, err = view_cameras.normal_equations(render, cam, rays, xi)
+    with torch.no_grad():
+        cam.delta.copy_(xi[None])
+    residual = render(*cam(o, d, zero), torch.ones_like(o)).rgb - target
+    (grad,) = torch.autograd.grad(0.5 * (residual**2).sum(), cam.delta)
+    assert grad.abs().max() > 1e-2
+    torch.testing.assert_close(jtr.float(), grad[0], rtol=1e-3, atol=1e-4)
+    assert err == pytest.approx(float((residual**2).mean()), rel=1e-5)
+    assert torch.linalg.eigvalsh(jtj).min() > -1e-6 and torch.allclose(jtj, jtj.T)
+
+
 def test_training_rays_march_the_refined_grid_with_the_same_picture_and_fewer_samples():
     """renderer.grid_refine: training rays march a grid refined at each update; the samples it drops lie in front
     of the surface's density band, so a training render is the same within float noise, from fewer samples."""

@@ -1,5 +1,6 @@
-"""Fitting a few numbers of one scored view to its image with the scene frozen (an appearance code, a camera
-correction): the loop both protocols share."""
+"""Fitting a few numbers of one scored view to its image with the scene frozen: the view's pixels, the photometric
+error both fits minimise, and the Adam loop of the appearance code (the camera correction is solved by
+Levenberg-Marquardt, evaluate/view_cameras.py)."""
 
 from __future__ import annotations
 
