@@ -40,7 +40,7 @@ def normal_equations(render, cam: CameraRefinement, fit, xi: torch.Tensor) -> tu
     """``(J^T J, J^T r, mean squared error)`` of the rays ``fit`` rendered from the camera corrected by ``xi`` [6]:
     ``r`` the colour residuals, ``J`` their Jacobian with respect to ``xi`` (float64 sums over chunks of
     :data:`FIT_CHUNK` rays)."""
-    jtj, jtr, sse = (torch.zeros(6, 6, dtype=torch.float64), torch.zeros(6, dtype=torch.float64), 0.0)
+    jtj, jtr, sse = xi.new_zeros(6, 6, dtype=torch.float64), xi.new_zeros(6, dtype=torch.float64), 0.0
     for s in range(0, len(fit), FIT_CHUNK):
         b = fit[s : s + FIT_CHUNK]
 
@@ -80,7 +80,7 @@ def solve_correction(render, cam: CameraRefinement, fit) -> torch.Tensor:
     at most :data:`FIT_RETRIES` times in a row, a trial costing one render without gradients), at most
     :data:`FIT_ITERATIONS` steps, stopping when a step changes the error by less than :data:`FIT_TOL` of it either
     way."""
-    xi, lam = torch.zeros(6), 1e-3
+    xi, lam = cam.delta.new_zeros(6), 1e-3
     jtj, jtr, err = normal_equations(render, cam, fit, xi)
     for _ in range(FIT_ITERATIONS):
         for _ in range(FIT_RETRIES):
