@@ -200,8 +200,9 @@ def view_cameras_record(protocol: str, left_half: bool, requested: str | None = 
     return {"protocol": "fit", **asked,
             "views": f"rendered from the dataset's pose corrected by an se(3) fitted to the view's "
                      f"{'left half' if left_half else 'image'} with the scene frozen (test-time pose optimisation, "
-                     f"BARF): Levenberg-Marquardt on a fixed draw of {FIT_RAYS} pixels, at most {FIT_ITERATIONS} "
-                     f"steps, stopping when a step gains less than {FIT_TOL:g} of the error; kept only when it "
+                     f"BARF): Levenberg-Marquardt on a fixed draw of {FIT_RAYS} pixels, a prior of {FIT_PRIOR:g} "
+                     f"of the error's mean curvature towards no correction, at most {FIT_ITERATIONS} steps, "
+                     f"stopping when a step gains less than {FIT_TOL:g} of the error; kept only when it "
                      f"lowers the error on another draw of {CHECK_RAYS} pixels, else the given pose (per_view "
                      "camera_fit_kept); per_view camera_fit_deg / camera_fit_move (normalised units) give each "
                      "correction"}
