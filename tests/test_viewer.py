@@ -351,17 +351,22 @@ def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_pa
             time.sleep(1.0)
             first = _shot(page)
             assert first.std() > 10, "the canvas is blank"
+            time.sleep(0.5)
+            still = np.abs(_shot(page) - first).mean()  # what two pictures of a resting camera differ by
             box = page.locator("canvas").first.bounding_box()
             x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
             frames = viewer.stats.frames
             page.mouse.move(x, y)
             page.mouse.down()
-            page.mouse.move(x + 300, y + 60, steps=10)  # 200 px: 3.36 quiet, 2.58 in a loaded full run
+            page.mouse.move(x + 300, y + 60, steps=10)
             page.mouse.up()
             _wait(lambda: viewer.stats.frames > frames + 1)
             time.sleep(1.0)
             moved = _shot(page)
-            assert np.abs(moved - first).mean() > 3, "the picture did not change when the camera moved"
+            # a resting camera's pictures differ by about 0.1 (8-bit levels, mean over the canvas); this drag by
+            # 2.6-4.3, the less on a machine busy with other tests (2.88 failed a fixed bound of 3 in a full run)
+            change = np.abs(moved - first).mean()
+            assert change > max(1.0, 8 * still), f"the picture did not change when the camera moved ({change:.2f})"
             page.get_by_label("Map", exact=True).click()
             page.get_by_role("option", name="normal", exact=True).click()
             _wait(lambda: viewer.gui_map.value == "normal")
