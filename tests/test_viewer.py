@@ -333,6 +333,19 @@ def _wait(cond, seconds: float = 30.0) -> None:  # noqa: ANN001
         time.sleep(0.05)
 
 
+def _settled(page, seconds: float = 30.0) -> np.ndarray:
+    """A screenshot once the viewer has stopped refining it: two shots half a second apart within 0.3 levels."""
+    shot, t = _shot(page), time.monotonic()
+    while True:
+        time.sleep(0.5)
+        again = _shot(page)
+        if np.abs(again - shot).mean() < 0.3:
+            return again
+        if time.monotonic() - t > seconds:
+            raise AssertionError("the picture did not settle")
+        shot = again
+
+
 def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_path):
     sync_playwright = _browser()
     viewer, watcher = open_run(viewed_run, port=_free_port(), max_resolution=256)
@@ -349,10 +362,8 @@ def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_pa
             page.wait_for_selector("canvas", timeout=30_000)
             _wait(lambda: viewer.stats.frames >= 2)  # a first picture, then a sharper one
             time.sleep(1.0)
-            first = _shot(page)
+            first = _settled(page)
             assert first.std() > 10, "the canvas is blank"
-            time.sleep(0.5)
-            still = np.abs(_shot(page) - first).mean()  # what two pictures of a resting camera differ by
             box = page.locator("canvas").first.bounding_box()
             x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
             frames = viewer.stats.frames
@@ -362,11 +373,11 @@ def test_the_page_shows_the_run_moves_and_switches_to_normals(viewed_run, tmp_pa
             page.mouse.up()
             _wait(lambda: viewer.stats.frames > frames + 1)
             time.sleep(1.0)
-            moved = _shot(page)
-            # a resting camera's pictures differ by about 0.1 (8-bit levels, mean over the canvas); this drag by
-            # 2.6-4.3, the less on a machine busy with other tests (2.88 failed a fixed bound of 3 in a full run)
+            moved = _settled(page)
+            # settled pictures of a resting camera differ by under 0.3 (8-bit levels, mean over the canvas); this drag
+            # changes it by 2.6-4.3, the less on a machine busy with other tests
             change = np.abs(moved - first).mean()
-            assert change > max(1.0, 8 * still), f"the picture did not change when the camera moved ({change:.2f})"
+            assert change > 1.0, f"the picture did not change when the camera moved ({change:.2f})"
             page.get_by_label("Map", exact=True).click()
             page.get_by_role("option", name="normal", exact=True).click()
             _wait(lambda: viewer.gui_map.value == "normal")
