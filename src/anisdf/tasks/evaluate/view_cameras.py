@@ -25,7 +25,7 @@ from typing import Any
 import torch
 
 from anisdf.models.per_image import CameraRefinement, pose_changes
-from anisdf.tasks.evaluate.view_fit import photometric_error, view_pixels
+from anisdf.tasks.evaluate.view_fit import view_pixels
 
 PROTOCOLS = ("auto", "given", "fit")
 FIT_RAYS = 8192
@@ -139,13 +139,8 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
 
     fit, check = draw(FIT_RAYS, seed), draw(CHECK_RAYS, seed + 1_000_003)  # two different draws
 
-    def check_error() -> float:
-        with torch.no_grad():
-            return float(photometric_error(lambda b: render(*cam(b.origins, b.directions,
-                                                                 torch.zeros_like(b.cam_idx)), b.background),
-                                           check))
-
-    before = check_error()
+    zero = cam.delta.new_zeros(6)
+    before = _error(render, cam, check, zero)
     frozen = [p for p in model.parameters() if p.requires_grad]
     for p in frozen:
         p.requires_grad_(False)
@@ -154,12 +149,9 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
     finally:
         for p in frozen:
             p.requires_grad_(True)
+    kept = _error(render, cam, check, xi) < before
     with torch.no_grad():
-        cam.delta.copy_(xi[None])
-    kept = check_error() < before
-    if not kept:
-        with torch.no_grad():
-            cam.delta.zero_()
+        cam.delta.copy_((xi if kept else zero)[None])
     return cam.refined_poses()[0], kept
 
 
