@@ -37,6 +37,12 @@ FIT_CHUNK = 4096
 CHECK_RAYS = 8192
 
 
+def _rays(cam: CameraRefinement, b, xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The origins and directions of the rays ``b`` through the camera corrected by ``xi`` [6] (a pure function of
+    ``xi``, so forward mode can differentiate it)."""
+    return torch.func.functional_call(cam, {"delta": xi[None]}, (b.origins, b.directions, torch.zeros_like(b.cam_idx)))
+
+
 def normal_equations(render, cam: CameraRefinement, fit, xi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, float]:
     """``(J^T J, J^T r, mean squared error)`` of the rays ``fit`` rendered from the camera corrected by ``xi`` [6]:
     ``r`` the colour residuals, ``J`` their Jacobian with respect to ``xi`` (float64 sums over chunks of
@@ -44,13 +50,9 @@ def normal_equations(render, cam: CameraRefinement, fit, xi: torch.Tensor) -> tu
     jtj, jtr, sse = xi.new_zeros(6, 6, dtype=torch.float64), xi.new_zeros(6, dtype=torch.float64), 0.0
     for s in range(0, len(fit), FIT_CHUNK):
         b = fit[s : s + FIT_CHUNK]
-
-        def rays(x, b=b):
-            return torch.func.functional_call(cam, {"delta": x[None]}, (b.origins, b.directions,
-                                                                        torch.zeros_like(b.cam_idx)))
-
-        j_o, j_d = torch.func.jacfwd(rays)(xi)  # [n, 3, 6]: each ray's origin and direction against the correction
-        o, d = (t.detach().requires_grad_(True) for t in rays(xi))
+        # [n, 3, 6]: each ray's origin and direction against the correction
+        j_o, j_d = torch.func.jacfwd(lambda x, b=b: _rays(cam, b, x))(xi)
+        o, d = (t.detach().requires_grad_(True) for t in _rays(cam, b, xi))
         with torch.enable_grad():
             rgb = render(o, d, b.background).rgb.float()
             per_ray = [torch.autograd.grad(rgb[:, k].sum(), (o, d), retain_graph=k < 2) for k in range(3)]
@@ -69,8 +71,7 @@ def _error(render, cam: CameraRefinement, fit, xi: torch.Tensor) -> float:
         sse = 0.0
         for s in range(0, len(fit), FIT_CHUNK):
             b = fit[s : s + FIT_CHUNK]
-            o, d = torch.func.functional_call(cam, {"delta": xi[None]}, (b.origins, b.directions,
-                                                                         torch.zeros_like(b.cam_idx)))
+            o, d = _rays(cam, b, xi)
             sse += float(((render(o, d, b.background).rgb.float() - b.rgb) ** 2).sum())
     return sse / (3 * len(fit))
 
