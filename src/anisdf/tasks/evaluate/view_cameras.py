@@ -25,7 +25,7 @@ from typing import Any
 import torch
 
 from anisdf.models.per_image import CameraRefinement, pose_changes
-from anisdf.tasks.evaluate.view_fit import view_pixels
+from anisdf.tasks.evaluate.view_fit import scene_frozen, view_pixels
 
 PROTOCOLS = ("auto", "given", "fit")
 FIT_RAYS = 8192
@@ -142,14 +142,8 @@ def fit_camera(model, data, i: int, left_half: bool = False, seed: int = 0) -> t
 
     zero = cam.delta.new_zeros(6)
     before = _error(render, cam, check, zero)
-    frozen = [p for p in model.parameters() if p.requires_grad]
-    for p in frozen:
-        p.requires_grad_(False)
-    try:
+    with scene_frozen(model):
         xi = solve_correction(render, cam, fit)
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
     kept = _error(render, cam, check, xi) < before
     with torch.no_grad():
         cam.delta.copy_((xi if kept else zero)[None])

@@ -4,7 +4,8 @@ Levenberg-Marquardt, evaluate/view_cameras.py)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import torch
@@ -14,6 +15,20 @@ def view_pixels(h: int, w: int, device: torch.device, left_half: bool = False) -
     """Indices of a view's ``h x w`` pixels (row-major), or of its left half (columns ``< w // 2``) only."""
     pixels = torch.arange(h * w, device=device)
     return pixels[(pixels % w) < w // 2] if left_half else pixels
+
+
+@contextlib.contextmanager
+def scene_frozen(model: torch.nn.Module) -> Iterator[None]:
+    """The model's trainable parameters frozen (no gradients) inside the block and given back their gradients
+    after, even when the block raises: a view's fit moves its own few numbers only."""
+    frozen = [p for p in model.parameters() if p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
 
 
 def photometric_error(render: Callable, batch) -> torch.Tensor:
@@ -31,10 +46,7 @@ def fit_to_view(model, batch, pixels: torch.Tensor, params: list[torch.Tensor], 
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda k: final_lr + (1 - final_lr) * 0.5 * (1 + np.cos(np.pi * k / steps)))
     gen = torch.Generator().manual_seed(seed)
-    frozen = [p for p in model.parameters() if p.requires_grad]
-    for p in frozen:
-        p.requires_grad_(False)
-    try:
+    with scene_frozen(model):
         for _ in range(steps):
             pick = pixels[torch.randint(pixels.numel(), (min(rays, pixels.numel()),), generator=gen)
                           .to(pixels.device)]
@@ -45,6 +57,3 @@ def fit_to_view(model, batch, pixels: torch.Tensor, params: list[torch.Tensor], 
             loss.backward()
             opt.step()
             sched.step()
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
