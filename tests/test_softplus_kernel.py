@@ -8,9 +8,9 @@ import torch
 import torch.nn.functional as F
 
 from anisdf.config import load_config
+from anisdf.fields import asg
 from anisdf.fields import softplus as sp
 from anisdf.fields.hash_grid import cpu_kernel
-from anisdf.fields.radiance_field import RadianceField
 from anisdf.fields.sdf_field import BETA, SDFField, mlp_with_input_grad
 from anisdf.models.anisdf import AniSDFModel
 
@@ -87,33 +87,14 @@ def test_sdf_mlp_with_kernel_matches_reference(kernel) -> None:
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5 * float(want.detach().abs().max()))
 
 
-def test_asg_heads_with_kernel_match_reference(kernel) -> None:
-    """The reflection branch's ASG sharpnesses (softplus, beta 1) by the kernel: the same colours and parameter
-    gradients as with PyTorch's softplus."""
-    cfg = load_config("cpu-quick")
-    torch.manual_seed(0)
-    fast = RadianceField(cfg.appearance, cfg.geometry.feature_dim, fast=True)
-    ref = RadianceField(cfg.appearance, cfg.geometry.feature_dim, fast=False)
-    ref.load_state_dict(fast.state_dict())
-    g = torch.Generator().manual_seed(3)
-    x, feat = torch.rand(2000, 3, generator=g) - 0.5, torch.randn(2000, cfg.geometry.feature_dim, generator=g)
-    n, d = (F.normalize(torch.randn(2000, 3, generator=g), dim=-1) for _ in range(2))
-
-    def run(field: RadianceField) -> list[torch.Tensor]:
-        rgb = field(x, feat, n, d)["rgb"]
-        return [rgb, *torch.autograd.grad(rgb.square().sum(), list(field.par_mlp.parameters()))]
-
-    for got, want in zip(run(fast), run(ref), strict=True):
-        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6 * float(want.detach().abs().max()))
-
-
 def test_reference_backend_stays_on_pytorch(monkeypatch) -> None:
     """``geometry.encoding_backend=torch`` is the pure-PyTorch reference: its SDF and ASG heads never call the
     kernel."""
     def forbidden(z):
-        raise AssertionError("the compiled softplus ran under encoding_backend=torch")
+        raise AssertionError("a compiled kernel ran under encoding_backend=torch")
 
-    monkeypatch.setattr(sp, "_kernel_for", forbidden)
+    monkeypatch.setattr(sp, "kernel_for", forbidden)
+    monkeypatch.setattr(asg, "kernel_for", forbidden)
     cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch"])
     field = SDFField(cfg.geometry)
     x = torch.rand(64, 3) * 1.6 - 0.8

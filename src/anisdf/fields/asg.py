@@ -6,14 +6,22 @@ The lobe frames are fixed: ``n_theta x n_phi`` axes ``z`` spread over the sphere
 ``theta + pi/2`` and bitangent ``y = z x x``. Sharpness (lambda, mu) and the 2-channel amplitude xi are predicted
 per point by a small network ``f_par`` (see :mod:`anisdf.fields.radiance_field`). Following the paper, the unit
 reflected direction enters the dot products (the authors' release used (r + 1) / 2).
+
+:func:`asg_features` takes ``f_par``'s raw output: the sharpnesses' softplus and the encoding in one step, on CPU by
+the compiled kernel (``kernels/asg_cpu.cpp``, forward and backward) when it applies, else by
+:func:`asg_features_reference` in PyTorch; tests/test_asg_kernel.py compares the two.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
+
+from anisdf.fields.hash_grid.cpu_kernel import kernel_for
 
 
 def asg_frames(n_theta: int = 8, n_phi: int = 16) -> Tensor:
@@ -41,3 +49,34 @@ def asg_encode(w: Tensor, frames: Tensor, lam: Tensor, mu: Tensor, xi: Tensor) -
     smooth = dots[..., 2].clamp_min(0.0)
     lobe = smooth * torch.exp(-lam * dots[..., 0] ** 2 - mu * dots[..., 1] ** 2)
     return (xi * lobe[..., None]).flatten(1)
+
+
+def asg_features_reference(par: Tensor, w: Tensor, frames: Tensor) -> Tensor:
+    """ASG features [B, N * 2] of unit directions ``w`` [B, 3] from raw lobe parameters ``par`` [B, N, 4]:
+    ``lambda = softplus(par[..., 0])``, ``mu = softplus(par[..., 1])``, ``xi = par[..., 2:]`` (PyTorch's operators)."""
+    lam_mu = F.softplus(par[..., :2])
+    return asg_encode(w, frames, lam_mu[..., 0], lam_mu[..., 1], par[..., 2:])
+
+
+class _ASGFeatures(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, par: Tensor, w: Tensor, frames: Tensor, mod: Any) -> Tensor:
+        ctx.save_for_backward(par, w, frames)
+        ctx.mod = mod
+        return mod.asg_forward(par, w, frames)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, Tensor | None, None, None]:
+        par, w, frames = ctx.saved_tensors
+        grad_par, grad_w = ctx.mod.asg_backward(grad, par, w, frames, ctx.needs_input_grad[1])
+        return grad_par, grad_w, None, None
+
+
+def asg_features(par: Tensor, w: Tensor, frames: Tensor, fast: bool = True) -> Tensor:
+    """:func:`asg_features_reference`, by the compiled kernel when ``fast`` and it applies (float32 CPU tensors,
+    not inside ``torch.compile``); differentiable once in ``par`` and ``w``."""
+    mod = kernel_for(par) if fast else None
+    if mod is None or w.dtype != torch.float32:
+        return asg_features_reference(par, w, frames)
+    return _ASGFeatures.apply(par, w, frames, mod)

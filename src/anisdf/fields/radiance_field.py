@@ -15,9 +15,8 @@ import torch
 from torch import Tensor, nn
 
 from anisdf.config import AppearanceConfig
-from anisdf.fields.asg import asg_encode, asg_frames
+from anisdf.fields.asg import asg_features, asg_frames
 from anisdf.fields.encodings import positional_encoding, sh_encoding
-from anisdf.fields.softplus import softplus
 
 
 def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
@@ -33,8 +32,8 @@ def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
 class RadianceField(nn.Module):
     def __init__(self, cfg: AppearanceConfig, feature_dim: int, code_dim: int = 0, fast: bool = True) -> None:
         """``code_dim`` > 0: the view and reflection heads also take a per-image appearance code of that size
-        (NeRF-W's appearance embedding; ``appearance.embedding``). ``fast``: the ASG sharpnesses' softplus by the
-        compiled kernel where it applies (:func:`anisdf.fields.softplus.softplus`), else PyTorch's."""
+        (NeRF-W's appearance embedding; ``appearance.embedding``). ``fast``: the ASG encoding with its sharpnesses'
+        softplus by the compiled kernel where it applies (:func:`anisdf.fields.asg.asg_features`), else PyTorch's."""
         super().__init__()
         self.cfg = cfg
         self.fast = fast
@@ -67,10 +66,7 @@ class RadianceField(nn.Module):
         refl = dirs - 2.0 * d_dot_n * normal
         n_dot_v = -d_dot_n
         if self.cfg.kind == "blend":
-            par = self.par_mlp(geo).view(-1, self.n_lobes, 4)
-            lam_mu = softplus(par[..., :2], 1.0, self.fast)  # one pass over both (a strided view)
-            lam, mu = lam_mu[..., 0], lam_mu[..., 1]
-            f_asg = asg_encode(refl, self.frames, lam, mu, par[..., 2:])
+            f_asg = asg_features(self.par_mlp(geo).view(-1, self.n_lobes, 4), refl, self.frames, self.fast)
             ref_in = torch.cat([f_asg, refl, n_dot_v, *codes], dim=-1)
         else:
             ref_in = torch.cat([positional_encoding(refl, self.cfg.pe_frequencies), n_dot_v, geo, *codes], dim=-1)

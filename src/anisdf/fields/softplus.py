@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from anisdf.fields.hash_grid.cpu_kernel import kernel_module
+from anisdf.fields.hash_grid.cpu_kernel import kernel_for
 
 
 def softplus_slope_reference(z: Tensor, beta: float) -> tuple[Tensor, Tensor]:
@@ -39,16 +39,10 @@ class _SoftplusSlope(torch.autograd.Function):
         return ctx.mod.softplus_slope_backward(s, da, ds, ctx.beta), None, None
 
 
-def _kernel_for(z: Tensor) -> Any:
-    if z.device.type != "cpu" or z.dtype != torch.float32 or torch.compiler.is_compiling():
-        return None
-    return kernel_module()
-
-
 def softplus_slope(z: Tensor, beta: float, fast: bool = True) -> tuple[Tensor, Tensor]:
     """``(softplus(z, beta), sigmoid(beta z))``, differentiable (once) in ``z``; the compiled kernel when ``fast``
     and it applies, else :func:`softplus_slope_reference`."""
-    mod = _kernel_for(z) if fast else None
+    mod = kernel_for(z) if fast else None
     if mod is None:
         return softplus_slope_reference(z, beta)
     return _SoftplusSlope.apply(z, beta, mod)
@@ -57,7 +51,7 @@ def softplus_slope(z: Tensor, beta: float, fast: bool = True) -> tuple[Tensor, T
 def softplus(z: Tensor, beta: float, fast: bool = True) -> Tensor:
     """``softplus(z, beta)``: the compiled kernel when ``fast`` and it applies (without gradient it skips the slope:
     queries of a fixed field, such as pruning, occupancy grids, images and meshes), else PyTorch's."""
-    mod = _kernel_for(z) if fast else None
+    mod = kernel_for(z) if fast else None
     if mod is None:
         return F.softplus(z, beta=beta)
     if torch.is_grad_enabled() and z.requires_grad:

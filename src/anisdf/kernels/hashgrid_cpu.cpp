@@ -735,6 +735,10 @@ torch::Tensor encode_jacobian_backward(std::optional<torch::Tensor> g, std::opti
 std::vector<torch::Tensor> softplus_slope(torch::Tensor z, double beta, bool want_slope);
 torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tensor> da,
                                       std::optional<torch::Tensor> ds, double beta);
+// kernels/asg_cpu.cpp
+torch::Tensor asg_forward(torch::Tensor par, torch::Tensor w, torch::Tensor frames);
+std::vector<torch::Tensor> asg_backward(torch::Tensor grad_out, torch::Tensor par, torch::Tensor w,
+                                        torch::Tensor frames, bool need_w);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   namespace py = pybind11;
@@ -742,7 +746,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   const auto nogil = py::call_guard<py::gil_scoped_release>();
   m.doc() =
       "anisdf CPU kernels: hash-grid encoding (forward, backward, double backward, forward with the Jacobian), "
-      "softplus with its slope";
+      "softplus with its slope, the ASG encoding";
   m.def("encode_forward", &encode_forward, "out[N, L*F] = hash_encode(x, table)", py::arg("x"), py::arg("table"),
         py::arg("levels"), py::arg("log2_size"), nogil);
   m.def("encode_backward", &encode_backward, "(grad_table, grad_x) of hash_encode; None where not needed",
@@ -762,4 +766,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("z"), py::arg("beta"), py::arg("want_slope"), nogil);
   m.def("softplus_slope_backward", &softplus_slope_backward, "dz = da * s + ds * beta * s * (1 - s)", py::arg("s"),
         py::arg("da"), py::arg("ds"), py::arg("beta"), nogil);
+  m.def("asg_forward", &asg_forward, "ASG features [B, L*2] of raw lobe parameters par [B, L, 4] and directions w",
+        py::arg("par"), py::arg("w"), py::arg("frames"), nogil);
+  m.def("asg_backward", &asg_backward, "(grad_par, grad_w or None) of asg_forward", py::arg("grad_out"),
+        py::arg("par"), py::arg("w"), py::arg("frames"), py::arg("need_w"), nogil);
 }

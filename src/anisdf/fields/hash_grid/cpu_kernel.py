@@ -1,5 +1,6 @@
 """The compiled CPU backend: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``, and in the same extension
-``softplus_cpu.cpp``, the SDF MLPs' softplus with its slope: :mod:`anisdf.fields.softplus`).
+``softplus_cpu.cpp``, the SDF MLPs' softplus with its slope: :mod:`anisdf.fields.softplus`, and ``asg_cpu.cpp``, the
+colour heads' ASG encoding: :mod:`anisdf.fields.asg`).
 
 Built with ``torch.utils.cpp_extension.load`` on first use, once per process, under ``$ANISDF_KERNEL_DIR``, else
 torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), which every checkout
@@ -34,8 +35,10 @@ from anisdf.fields.hash_grid.ops import kernels_disabled, short_error
 log = logging.getLogger(__name__)
 
 _KERNELS = Path(__file__).resolve().parents[2] / "kernels"
-SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp")
+SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp", _KERNELS / "asg_cpu.cpp")
 """The extension's sources; the first holds the Python bindings of all of them."""
+HEADERS = (_KERNELS / "fast_math.h",)
+"""Headers the sources include: part of what the build's name hashes."""
 _EXT_NAME = "anisdf_hashgrid_cpu"
 
 # One build attempt per process: the module, or the reason it is unavailable.
@@ -68,8 +71,8 @@ def _compile_flags() -> tuple[list[str], str]:
 
 
 def source_bytes() -> bytes:
-    """All sources, in order: what the build's name hashes."""
-    return b"\0".join(p.read_bytes() for p in SOURCES)
+    """All sources and headers, in order: what the build's name hashes."""
+    return b"\0".join(p.read_bytes() for p in (*SOURCES, *HEADERS))
 
 
 def torch_identity() -> str:
@@ -115,7 +118,7 @@ def _build() -> ModuleType:
     cxx = os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         raise RuntimeError(f"no C++ compiler ({cxx}) on PATH")
-    missing = [str(p) for p in SOURCES if not p.is_file()]
+    missing = [str(p) for p in (*SOURCES, *HEADERS) if not p.is_file()]
     if missing:
         raise RuntimeError(f"kernel source {missing[0]} is missing")
     flags, tag = _compile_flags()
@@ -142,6 +145,14 @@ def kernel_module() -> ModuleType | None:
             log.warning("hash grid: compiled CPU kernel unavailable (%s); falling back to the PyTorch "
                         "reference encoding", _state["error"])
     return _state["module"]
+
+
+def kernel_for(t: torch.Tensor) -> ModuleType | None:
+    """The compiled extension for a float32 CPU tensor ``t`` outside ``torch.compile`` (which fuses the references
+    itself), else ``None``."""
+    if t.device.type != "cpu" or t.dtype != torch.float32 or torch.compiler.is_compiling():
+        return None
+    return kernel_module()
 
 
 def kernel_info() -> dict[str, Any]:
