@@ -281,6 +281,25 @@ def test_jacobian_transpose_product_gradients_match_finite_differences() -> None
     torch.testing.assert_close(ops.jacobian_transpose_product(jac, g), torch.einsum("nkd,nk->nd", jac, g))
 
 
+def test_jacobian_transpose_product_kernel_matches_reference(kernel) -> None:
+    """The compiled ``J^T g`` (float32 CPU) against the batched-product reference: the value and both gradients,
+    with ``g`` a column slice of a wider matrix (the MLP input gradient's grid columns, as the SDF branch passes it),
+    and on 0 rows."""
+    gen = torch.Generator().manual_seed(3)
+    jac = torch.randn(3000, 24, 3, generator=gen, requires_grad=True)
+    wide = torch.randn(3000, 27, generator=gen, requires_grad=True)
+    d = torch.randn(3000, 3, generator=gen)
+
+    def run(fast: bool) -> list[torch.Tensor]:
+        out = ops.jacobian_transpose_product(jac, wide[:, 3:], fast=fast)
+        return [out, *torch.autograd.grad((out * d).sum(), [jac, wide])]
+
+    for got, want in zip(run(True), run(False), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    empty = ops.jacobian_transpose_product(torch.zeros(0, 24, 3), torch.zeros(0, 24))
+    assert empty.shape == (0, 3)
+
+
 def test_jacobian_route_applies_only_where_it_is_exact(kernel) -> None:
     """The reference backend, and points that need their own gradient, take the autograd route (None)."""
     x = torch.rand(100, 3)

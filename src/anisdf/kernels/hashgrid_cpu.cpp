@@ -739,6 +739,10 @@ torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tens
 torch::Tensor asg_forward(torch::Tensor par, torch::Tensor w, torch::Tensor frames);
 std::vector<torch::Tensor> asg_backward(torch::Tensor grad_out, torch::Tensor par, torch::Tensor w,
                                         torch::Tensor frames, bool need_w);
+// kernels/jacobian_product_cpu.cpp
+torch::Tensor jacobian_product_forward(torch::Tensor jac, torch::Tensor g);
+std::vector<torch::Tensor> jacobian_product_backward(torch::Tensor d, torch::Tensor jac, torch::Tensor g,
+                                                     bool need_jac, bool need_g);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   namespace py = pybind11;
@@ -746,7 +750,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   const auto nogil = py::call_guard<py::gil_scoped_release>();
   m.doc() =
       "anisdf CPU kernels: hash-grid encoding (forward, backward, double backward, forward with the Jacobian), "
-      "softplus with its slope, the ASG encoding";
+      "softplus with its slope, the ASG encoding, the Jacobian's product J^T g";
   m.def("encode_forward", &encode_forward, "out[N, L*F] = hash_encode(x, table)", py::arg("x"), py::arg("table"),
         py::arg("levels"), py::arg("log2_size"), nogil);
   m.def("encode_backward", &encode_backward, "(grad_table, grad_x) of hash_encode; None where not needed",
@@ -770,4 +774,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("par"), py::arg("w"), py::arg("frames"), nogil);
   m.def("asg_backward", &asg_backward, "(grad_par, grad_w or None) of asg_forward", py::arg("grad_out"),
         py::arg("par"), py::arg("w"), py::arg("frames"), py::arg("need_w"), nogil);
+  m.def("jacobian_product_forward", &jacobian_product_forward, "out[n] = sum_k g[n, k] jac[n, k, :]", py::arg("jac"),
+        py::arg("g"), nogil);
+  m.def("jacobian_product_backward", &jacobian_product_backward, "(d_jac or None, d_g or None) of the product",
+        py::arg("d"), py::arg("jac"), py::arg("g"), py::arg("need_jac"), py::arg("need_g"), nogil);
 }

@@ -169,9 +169,33 @@ class _JacobianTransposeProduct(torch.autograd.Function):
         return d_jac, d_g
 
 
-def jacobian_transpose_product(jac: Tensor, g: Tensor) -> Tensor:
-    """``sum_k g[n, k] jac[n, k, :]``: the gradient w.r.t. the point of ``<enc, g>`` (:func:`encode_with_jacobian`)."""
-    return _JacobianTransposeProduct.apply(jac, g)
+class _JacobianTransposeProductKernel(torch.autograd.Function):
+    """:class:`_JacobianTransposeProduct` by the compiled CPU kernel (``kernels/jacobian_product_cpu.cpp``)."""
+
+    @staticmethod
+    def forward(ctx: Any, jac: Tensor, g: Tensor, mod: Any) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(jac, g)
+        ctx.mod = mod
+        return mod.jacobian_product_forward(jac, g)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx: Any, d: Tensor) -> tuple[Tensor | None, Tensor | None, None]:  # type: ignore[override]
+        jac, g = ctx.saved_tensors
+        d_jac, d_g = ctx.mod.jacobian_product_backward(d, jac, g, ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+        return d_jac, d_g, None
+
+
+def jacobian_transpose_product(jac: Tensor, g: Tensor, fast: bool = True) -> Tensor:
+    """``sum_k g[n, k] jac[n, k, :]``: the gradient w.r.t. the point of ``<enc, g>`` (:func:`encode_with_jacobian`).
+    By the compiled CPU kernel when ``fast`` and it applies (float32 CPU tensors), else by batched matrix products
+    (:class:`_JacobianTransposeProduct`, the reference)."""
+    from anisdf.fields.hash_grid.cpu_kernel import kernel_for  # that module imports this one
+
+    mod = kernel_for(jac) if fast and g.dtype == torch.float32 else None
+    if mod is None:
+        return _JacobianTransposeProduct.apply(jac, g)
+    return _JacobianTransposeProductKernel.apply(jac, g, mod)
 
 
 def kernel_inputs(x: Tensor, table: Tensor, spec: GridSpec) -> bool:
