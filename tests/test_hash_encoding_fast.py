@@ -291,12 +291,12 @@ def test_jacobian_transpose_product_kernel_matches_reference(kernel) -> None:
     d = torch.randn(3000, 3, generator=gen)
 
     def run(fast: bool) -> list[torch.Tensor]:
-        out = ops.jacobian_transpose_product(jac, wide[:, 3:], fast=fast)
+        out = hef.jacobian_transpose_product(jac, wide[:, 3:], fast=fast)
         return [out, *torch.autograd.grad((out * d).sum(), [jac, wide])]
 
     for got, want in zip(run(True), run(False), strict=True):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
-    empty = ops.jacobian_transpose_product(torch.zeros(0, 24, 3), torch.zeros(0, 24))
+    empty = hef.jacobian_transpose_product(torch.zeros(0, 24, 3), torch.zeros(0, 24))
     assert empty.shape == (0, 3)
 
 

@@ -27,8 +27,7 @@ from torch import Tensor, nn
 from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
-from anisdf.fields.hash_grid import GridSpec, HashGrid
-from anisdf.fields.hash_grid.ops import jacobian_transpose_product
+from anisdf.fields.hash_grid import GridSpec, HashGrid, jacobian_transpose_product
 from anisdf.fields.softplus import softplus, softplus_slope
 
 BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)

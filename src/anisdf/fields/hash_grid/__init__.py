@@ -15,6 +15,7 @@ from anisdf.fields.hash_grid.dispatch import (
     HashGrid,
     fast_backend,
     fast_hash_encode,
+    jacobian_transpose_product,
     kernel_supports,
     load_fast_encoder,
     triton_info,
@@ -23,4 +24,5 @@ from anisdf.fields.hash_grid.dispatch import (
 from anisdf.fields.hash_grid.reference import EncodeFn, GridSpec, hash_encode_reference
 
 __all__ = ["EncodeFn", "GridSpec", "HashGrid", "fast_backend", "fast_hash_encode", "hash_encode_reference",
-           "kernel_info", "kernel_module", "kernel_supports", "load_fast_encoder", "triton_info", "triton_module"]
+           "jacobian_transpose_product", "kernel_info", "kernel_module", "kernel_supports", "load_fast_encoder",
+           "triton_info", "triton_module"]

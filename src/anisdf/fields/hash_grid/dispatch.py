@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from anisdf.errors import AnisdfError
-from anisdf.fields.hash_grid import cpu_kernel
+from anisdf.fields.hash_grid import cpu_kernel, ops
 from anisdf.fields.hash_grid.ops import (
     apply_kernels,
     encode_with_jacobian,
@@ -151,6 +151,13 @@ def fast_hash_encode(x: Tensor, table: Tensor, spec: GridSpec, n_levels: int | N
             _require(x.device)
         return hash_encode_reference(x, table, spec, n_levels)
     return apply_kernels(x, table, spec, ops, n_levels)
+
+
+def jacobian_transpose_product(jac: Tensor, g: Tensor, fast: bool = True) -> Tensor:
+    """``J^T g`` of :meth:`HashGrid.encode_with_jacobian`'s Jacobian (:func:`.ops.jacobian_transpose_product`): by
+    the compiled CPU kernel when ``fast`` and it applies (float32 CPU tensors), else by the PyTorch reference."""
+    mod = cpu_kernel.kernel_for(jac) if fast and g.dtype == torch.float32 else None
+    return ops.jacobian_transpose_product(jac, g, mod)
 
 
 def _require(device: torch.device) -> None:

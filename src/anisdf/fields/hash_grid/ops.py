@@ -186,13 +186,10 @@ class _JacobianTransposeProductKernel(torch.autograd.Function):
         return d_jac, d_g, None
 
 
-def jacobian_transpose_product(jac: Tensor, g: Tensor, fast: bool = True) -> Tensor:
+def jacobian_transpose_product(jac: Tensor, g: Tensor, mod: ModuleType | None = None) -> Tensor:
     """``sum_k g[n, k] jac[n, k, :]``: the gradient w.r.t. the point of ``<enc, g>`` (:func:`encode_with_jacobian`).
-    By the compiled CPU kernel when ``fast`` and it applies (float32 CPU tensors), else by batched matrix products
-    (:class:`_JacobianTransposeProduct`, the reference)."""
-    from anisdf.fields.hash_grid.cpu_kernel import kernel_for  # that module imports this one
-
-    mod = kernel_for(jac) if fast and g.dtype == torch.float32 else None
+    By the compiled CPU kernel ``mod`` when given (float32 CPU tensors; :func:`.dispatch.jacobian_transpose_product`
+    picks it), else by batched matrix products (:class:`_JacobianTransposeProduct`, the reference)."""
     if mod is None:
         return _JacobianTransposeProduct.apply(jac, g)
     return _JacobianTransposeProductKernel.apply(jac, g, mod)
