@@ -20,6 +20,18 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
 
+@pytest.fixture(scope="module")
+def kernel() -> object:
+    """The compiled CPU extension (hash grid, softplus, ASG, ``J^T g``); the test skips, saying why, without it."""
+    from anisdf.fields.hash_grid import cpu_kernel
+
+    mod = cpu_kernel.kernel_module()
+    if mod is None:
+        reason = cpu_kernel.kernel_info()["error"] or "disabled by ANISDF_NO_KERNEL"
+        pytest.skip(f"compiled CPU kernel unavailable: {reason}")
+    return mod
+
+
 @pytest.fixture(scope="session")
 def toy_scene(tmp_path_factory) -> Path:
     """A tiny analytic scene rendered by the project's own sphere tracer (NeRF-synthetic format)."""

@@ -9,17 +9,7 @@ import torch.nn.functional as F
 
 from anisdf.config import load_config
 from anisdf.fields.asg import asg_features, asg_features_reference, asg_frames
-from anisdf.fields.hash_grid import cpu_kernel
 from anisdf.fields.radiance_field import RadianceField
-
-
-@pytest.fixture(scope="module")
-def kernel() -> object:
-    mod = cpu_kernel.kernel_module()
-    if mod is None:
-        reason = cpu_kernel.kernel_info()["error"] or "disabled by ANISDF_NO_KERNEL"
-        pytest.skip(f"compiled CPU kernel unavailable: {reason}")
-    return mod
 
 
 def _inputs(n: int = 3000, lobes: tuple[int, int] = (4, 8)) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -26,14 +26,6 @@ from anisdf.fields.hash_grid.reference import GridSpec, hash_encode_reference
 SMALL = GridSpec(n_levels=6, features_per_level=2, log2_hashmap_size=12, base_resolution=8, per_level_scale=1.5)
 
 
-@pytest.fixture(scope="module")
-def kernel() -> object:
-    mod = cpu_kernel.kernel_module()
-    if mod is None:
-        reason = cpu_kernel.kernel_info()["error"] or "disabled by ANISDF_NO_KERNEL"
-        print(f"compiled hash-grid kernel unavailable: {reason}")
-        pytest.skip(f"compiled hash-grid kernel unavailable: {reason}")
-    return mod
 
 
 @pytest.fixture(scope="module")

@@ -10,18 +10,8 @@ import torch.nn.functional as F
 from anisdf.config import load_config
 from anisdf.fields import asg
 from anisdf.fields import softplus as sp
-from anisdf.fields.hash_grid import cpu_kernel
 from anisdf.fields.sdf_field import BETA, SDFField, mlp_with_input_grad
 from anisdf.models.anisdf import AniSDFModel
-
-
-@pytest.fixture(scope="module")
-def kernel() -> object:
-    mod = cpu_kernel.kernel_module()
-    if mod is None:
-        reason = cpu_kernel.kernel_info()["error"] or "disabled by ANISDF_NO_KERNEL"
-        pytest.skip(f"compiled CPU kernel unavailable: {reason}")
-    return mod
 
 
 def _pre_activations() -> torch.Tensor:
