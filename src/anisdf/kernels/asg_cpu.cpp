@@ -25,7 +25,7 @@ namespace {
 
 using anisdf_math::exp_arg_max;
 using anisdf_math::exp_neg;
-using anisdf_math::log1p_unit;
+using anisdf_math::softplus_slope_at;
 
 constexpr int64_t kGrainRows = 256;
 
@@ -69,13 +69,14 @@ void lobe_terms(const float* __restrict fr, const float* __restrict r, const flo
     dx[l] = w0 * fr[l] + w1 * fr[L + l] + w2 * fr[2 * L + l];
     dy[l] = w0 * fr[3 * L + l] + w1 * fr[4 * L + l] + w2 * fr[5 * L + l];
     dz[l] = w0 * fr[6 * L + l] + w1 * fr[7 * L + l] + w2 * fr[8 * L + l];
-    const float er = exp_neg(r[l] < 0.0f ? -r[l] : r[l], x_max);
-    lam[l] = (r[l] > 0.0f ? r[l] : 0.0f) + log1p_unit(er);
-    s_lam[l] = (r[l] >= 0.0f ? 1.0f : er) / (1.0f + er);
-    const float eq = exp_neg(q[l] < 0.0f ? -q[l] : q[l], x_max);
-    mu[l] = (q[l] > 0.0f ? q[l] : 0.0f) + log1p_unit(eq);
-    s_mu[l] = (q[l] >= 0.0f ? 1.0f : eq) / (1.0f + eq);
-    e[l] = exp_neg(lam[l] * dx[l] * dx[l] + mu[l] * dy[l] * dy[l], x_max);
+    float la, sl, m, sm;  // locals, not the arrays, as the helper's outputs: else the loop does not vectorise
+    softplus_slope_at(r[l], 1.0f, 1.0f, x_max, la, sl);
+    softplus_slope_at(q[l], 1.0f, 1.0f, x_max, m, sm);
+    lam[l] = la;
+    s_lam[l] = sl;
+    mu[l] = m;
+    s_mu[l] = sm;
+    e[l] = exp_neg(la * dx[l] * dx[l] + m * dy[l] * dy[l], x_max);
   }
 }
 

@@ -1,5 +1,5 @@
-// Branch-free float32 exp and log1p for the CPU kernels (softplus_cpu.cpp, asg_cpu.cpp): plain arithmetic that
-// GCC vectorises, where std::exp and std::log1p are library calls it does not.
+// Branch-free float32 exp, log1p and softplus with its slope for the CPU kernels (softplus_cpu.cpp, asg_cpu.cpp):
+// plain arithmetic that GCC vectorises, where std::exp and std::log1p are library calls it does not.
 #pragma once
 
 #include <cstdint>
@@ -51,6 +51,13 @@ inline float log1p_unit(float e) {
   p = p * t2 + 1.0f / 3.0f;
   p = p * t2 + 1.0f;
   return 2.0f * t * p;
+}
+
+// softplus_beta(v) = max(v, 0) + log1p(exp(-beta |v|)) / beta and its slope sigmoid(beta v), from one exp.
+inline void softplus_slope_at(float v, float beta, float inv_beta, float x_max, float& a, float& s) {
+  const float e = exp_neg(beta * (v < 0.0f ? -v : v), x_max);
+  a = (v > 0.0f ? v : 0.0f) + log1p_unit(e) * inv_beta;
+  s = (v >= 0.0f ? 1.0f : e) / (1.0f + e);
 }
 
 }  // namespace anisdf_math

@@ -25,8 +25,7 @@
 namespace {
 
 using anisdf_math::exp_arg_max;
-using anisdf_math::exp_neg;
-using anisdf_math::log1p_unit;
+using anisdf_math::softplus_slope_at;
 
 constexpr int64_t kGrain = 16384;
 
@@ -50,17 +49,11 @@ std::vector<torch::Tensor> softplus_slope(torch::Tensor z, double beta, bool wan
   const float x_max = exp_arg_max();
   at::parallel_for(0, zc.numel(), kGrain, [&](int64_t lo, int64_t hi) {
     if (sp != nullptr) {
-      for (int64_t i = lo; i < hi; ++i) {
-        const float v = zp[i];
-        const float e = exp_neg(b * (v < 0.0f ? -v : v), x_max);
-        ap[i] = (v > 0.0f ? v : 0.0f) + log1p_unit(e) * inv_b;
-        sp[i] = (v >= 0.0f ? 1.0f : e) / (1.0f + e);
-      }
+      for (int64_t i = lo; i < hi; ++i) softplus_slope_at(zp[i], b, inv_b, x_max, ap[i], sp[i]);
     } else {
       for (int64_t i = lo; i < hi; ++i) {
-        const float v = zp[i];
-        const float e = exp_neg(b * (v < 0.0f ? -v : v), x_max);
-        ap[i] = (v > 0.0f ? v : 0.0f) + log1p_unit(e) * inv_b;
+        float unused;  // the slope's division is dead code once inlined
+        softplus_slope_at(zp[i], b, inv_b, x_max, ap[i], unused);
       }
     }
   });
