@@ -578,6 +578,50 @@ def test_early_ray_termination_keeps_the_samples_of_the_one_pass_pruning(segment
         assert queried.numel() < 0.75 * s.n  # ... which early termination never queries
 
 
+@pytest.mark.parametrize("inv_s", [20.0, 60.0, 300.0])
+def test_opaque_after_is_the_fewest_sections_that_can_hide_a_sample(inv_s):
+    """A ray entering the surface head-on (SDF ``-2 / inv_s - t``: slope -1, every section about as opaque as one
+    can be): its first ``opaque_after + 1`` samples are kept (the bound holds) and at most two more (it is tight)."""
+    from anisdf.model_components.neus_renderer import opaque_after, prune_occluded
+
+    step, eps = 0.01, 1e-3
+    k = opaque_after(step, inv_s, eps)
+    t = torch.arange(3 * k + 10, dtype=torch.float32) * step
+    keep = prune_occluded(-2.0 / inv_s - t, t, torch.zeros_like(t, dtype=torch.long), 1, step,
+                          torch.tensor(inv_s), eps)
+    assert bool(keep[: k + 1].all()) and int(keep.sum()) <= k + 3
+
+
+@pytest.mark.parametrize("inv_s", [2.0, 20.0, 60.0, 200.0])
+def test_rays_too_short_to_turn_opaque_are_kept_unqueried(inv_s):
+    """Training needs only the keep mask: a ray with fewer samples than ``opaque_after`` sections is kept whole
+    without querying its SDF (at ``inv_s`` 2 every ray, at 200 almost none), and the mask is still the one-pass
+    estimate's."""
+    from anisdf.model_components.neus_renderer import opaque_after, prune_occluded, prune_occluded_progressive
+
+    gen = torch.Generator().manual_seed(1)
+    n_rays, step = 400, 0.01
+    o = F.normalize(torch.randn(n_rays, 3, generator=gen), dim=-1) * 2.0
+    d = F.normalize(-o + 0.6 * torch.randn(n_rays, 3, generator=gen), dim=-1)
+    s = march(o, d, None, 1.0, step, 1024)
+    sdf = _sphere_sdf(o[s.ray_idx] + d[s.ray_idx] * s.t[:, None]) - 0.3  # the sphere of radius 0.7
+    want = prune_occluded(sdf, s.t, s.ray_idx, n_rays, step, torch.tensor(inv_s), 1e-3)
+    asked = []
+    got, _ = prune_occluded_progressive(lambda i: (asked.append(i), sdf[i])[1], s.t, s.ray_idx, n_rays, step,
+                                        torch.tensor(inv_s), 1e-3, need_sdf=False)
+    assert torch.equal(got, want)
+    counts = torch.bincount(s.ray_idx, minlength=n_rays)
+    short = counts <= opaque_after(step, inv_s, 1e-3) + 1
+    queried = torch.cat(asked) if asked else torch.zeros(0, dtype=torch.long)
+    assert not short[s.ray_idx[queried]].any()  # no sample of a short ray is queried
+    if inv_s == 2.0:
+        assert short.all() and not asked and bool(want.all())
+    if inv_s in (20.0, 60.0):  # both kinds of ray, and the long ones can turn opaque
+        assert 0 < int(short[counts > 0].sum()) < int((counts > 0).sum()) and not bool(want.all())
+    if inv_s == 200.0:
+        assert want.sum() < 0.8 * s.n
+
+
 def test_ray_occupancy_query_finds_the_cells_of_the_point_query():
     """The march's per-ray query (cell units, one axis at a time) picks the cells ``query`` picks for the same
     points; the two round differently only on cell faces (a few points in a million)."""

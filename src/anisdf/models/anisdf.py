@@ -252,7 +252,7 @@ class AniSDFModel(nn.Module):
                     return self.geometry.distance(origins[r] + dirs[r] * s.t[i, None])
 
                 keep, sdf_kept = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
-                                                            inv_s.detach(), rc.early_stop_eps)
+                                                            inv_s.detach(), rc.early_stop_eps, need_sdf=not train)
                 sdf_kept = sdf_kept[keep]
             s = s.select(keep)
         # index_select: with refined cameras the rays carry gradients, and its backward (index_add) sums the
