@@ -17,7 +17,7 @@ from anisdf.data.dataparsers import load_scene
 from anisdf.data.synthetic import scene_sdf
 from anisdf.errors import AnisdfError, TrainingDiverged
 from anisdf.training import checkpoint
-from anisdf.training.trainer import Trainer
+from anisdf.training.trainer import Trainer, lr_factor
 
 TINY = [
     "geometry.n_levels=8", "geometry.coarse_levels=5", "geometry.coarse_start_levels=3",
@@ -103,7 +103,7 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
     """With ``--max-minutes`` the schedule advances with the budget spent: a slow and a fast machine both end at the
     deadline with every level on, the cos anneal done and the learning rate decayed; the fast one uses its time for
     more steps, not fewer minutes."""
-    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1", "optim.warmup_steps=2"])
     _FakeClock(tr, seconds_per_step)
     lrs = []
     step = tr.train_step
@@ -118,6 +118,29 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
     assert lrs[-1] < 0.2 * base and lrs[-1] == min(lrs[1:])
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["status"] == "done" and run["schedule"] == "time" and run["step"] == steps
+
+
+def test_the_warm_up_lasts_its_optimiser_steps_under_a_time_budget(toy_scene, tmp_path):
+    """A slow machine's budget runs many schedule steps an optimiser step; the learning-rate warm-up still spans
+    ``optim.warmup_steps`` optimiser steps (and as many schedule steps), while the decay follows the schedule.
+    Without a budget the factor is the schedule's alone."""
+    cfg = load_config("cpu-quick", ["optim.warmup_steps=100", "train.max_steps=1500"])
+    for k in (10, 50, 99):  # 10 schedule steps an optimiser step: the schedule's decay, the optimiser's warm-up
+        assert lr_factor(10 * k, cfg, k) == pytest.approx(lr_factor(10 * k, cfg) * (0.01 + 0.99 * k / 100))
+    for k in (0, 5):  # both still warming up: the optimiser steps are the fewer
+        assert lr_factor(10 * k, cfg, k) == pytest.approx(lr_factor(k, cfg))
+    assert lr_factor(30, cfg, 200) == lr_factor(30, cfg)  # a fast machine: the schedule's warm-up is the longer
+    assert lr_factor(1500, cfg, 150) == pytest.approx(cfg.optim.final_lr_factor)  # warm, and decayed to the end
+    assert lr_factor(1500, cfg, 50) == pytest.approx(cfg.optim.final_lr_factor * (0.01 + 0.99 * 0.5))
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=1000", "train.max_minutes=1"])  # warm-up 20 steps
+    _FakeClock(tr, 6.0)  # 100 schedule steps an optimiser step
+    lrs = []
+    step = tr.train_step
+    tr.train_step = lambda: (lambda st: (lrs.append(st["lr"]), st)[1])(step())  # type: ignore[method-assign]
+    tr.fit()
+    base, decay = tr.cfg.optim.lr, tr.cfg.optim.final_lr_factor
+    assert lrs[5] <= base * (0.01 + 0.99 * 5 / 20)  # the sixth step is a quarter into the warm-up, not past it
+    assert lrs[-1] < base * decay**0.8 * (0.01 + 0.99 * 9 / 20)  # nine of its 20 steps: decayed, still warming
 
 
 def test_the_sharpness_learns_per_schedule_step_under_a_time_budget(toy_scene, tmp_path):
@@ -279,14 +302,14 @@ def test_a_vanished_surface_stops_with_a_clear_message(toy_scene, tmp_path):
             b.layers[-1].bias[0] += 10.0
     with pytest.raises(TrainingDiverged, match="surface vanished") as err:
         tr.train_step()
-    assert "warmup_steps" not in str(err.value)
-    # under a time budget of few steps the warm-up was short too: the message says so, and what gives it more
+    assert "schedule steps an optimiser step" not in str(err.value)
+    # under a time budget of few steps the schedule was compressed: the message says so, and what gives it more
     short = _trainer(toy_scene, tmp_path / "short", ["train.max_steps=1000", "train.max_minutes=1"])
     short.state.step, short.state.train_seconds = 16, 9.6  # 160 schedule steps in 16: 10 a step
     with torch.no_grad():
         for b in short.model.geometry.branches:
             b.layers[-1].bias[0] += 10.0
-    with pytest.raises(TrainingDiverged, match=r"10 schedule steps an optimiser step.*warmup_steps=20 .*about 2 steps"):
+    with pytest.raises(TrainingDiverged, match=r"10 schedule steps an optimiser step.*longer --max-minutes"):
         short.train_step()
 
 

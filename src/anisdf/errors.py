@@ -25,16 +25,15 @@ class TrainingDiverged(AnisdfError):
     """Training produced a non-finite or exploding loss."""
 
 
-def surface_vanished(step: int, pace: float = 1.0, warmup_steps: int = 0) -> TrainingDiverged:
+def surface_vanished(step: int, pace: float = 1.0) -> TrainingDiverged:
     """The error of a run whose SDF has no zero level near any occupancy-grid cell at ``step``. ``pace``: schedule steps
-    an optimiser step under a time budget; above 2 with the warm-up (``warmup_steps`` schedule steps) over, the message
-    says how few steps the warm-up lasted and what gives it more."""
+    an optimiser step under a time budget; above 2 the message says how compressed the schedule was and what gives
+    it more steps."""
     msg = (f"step {step}: the surface vanished (the SDF has no zero level near any occupancy-grid cell), so no ray has "
            "samples left to train on. Start again with another train.seed, or a lower optim.lr or optim.lr_variance "
            "(the NeuS sharpness growing too fast can set it off).")
-    if pace > 2 and warmup_steps > 0:
-        msg += (f" This time budget ran {pace:.0f} schedule steps an optimiser step, so the learning-rate warm-up "
-                f"(optim.warmup_steps={warmup_steps} schedule steps) lasted about {max(1, round(warmup_steps / pace))} "
-                "steps: a longer --max-minutes, or a larger optim.warmup_steps, gives it more (benchmarks/RESULTS.md, "
+    if pace > 2:
+        msg += (f" This time budget ran {pace:.0f} schedule steps an optimiser step, so the levels and the sharpness "
+                "moved that much faster a step: a longer --max-minutes gives them more steps (benchmarks/RESULTS.md, "
                 "\"Short budgets\").")
     return TrainingDiverged(msg)

@@ -50,13 +50,16 @@ LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "
 
 
 
-def lr_factor(step: int, cfg: Config) -> float:
-    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end."""
+def lr_factor(step: int, cfg: Config, optimiser_step: int | None = None) -> float:
+    """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end, both
+    at schedule step ``step``. With ``optimiser_step`` (a time budget) the warm-up also lasts ``warmup_steps``
+    optimiser steps: Adam's first updates need steps, not seconds, and a slow machine's schedule would otherwise end
+    the warm-up in a few dozen steps (a sharpness that ran away and a lost surface in 90 s, benchmarks/RESULTS.md)."""
     o = cfg.optim
-    if step < o.warmup_steps:
-        return 0.01 + 0.99 * step / max(o.warmup_steps, 1)
+    done = step if optimiser_step is None else min(step, optimiser_step)
+    warm = 0.01 + 0.99 * min(done / max(o.warmup_steps, 1), 1.0)
     span = max(cfg.train.max_steps - o.warmup_steps, 1)
-    return o.final_lr_factor ** (min(step - o.warmup_steps, span) / span)
+    return warm * o.final_lr_factor ** (min(max(step - o.warmup_steps, 0), span) / span)
 
 
 def build_model(cfg: Config, scene: Scene, device: torch.device) -> AniSDFModel:
@@ -275,10 +278,8 @@ class Trainer:
             warm = st.step < rc.grid_warmup_steps and st.step % (4 * rc.grid_update_every) == 0
             model.update_grid(self.gen, full=warm, job=self.dist)
             if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
-                warmup = cfg.optim.warmup_steps
-                raise surface_vanished(st.step, self.schedule_pace(bounded=False),
-                                       warmup if st.schedule_step >= warmup else 0)
-        f = lr_factor(st.schedule_step, cfg)
+                raise surface_vanished(st.step, self.schedule_pace(bounded=False))
+        f = lr_factor(st.schedule_step, cfg, st.step if self.budget_seconds > 0 else None)
         pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f * (pace if g.get("name") == "variance" else 1.0)
