@@ -122,8 +122,7 @@ def test_a_time_budget_lays_the_schedule_on_time(toy_scene, tmp_path, seconds_pe
 
 def test_the_warm_up_lasts_its_optimiser_steps_under_a_time_budget(toy_scene, tmp_path):
     """A slow machine's budget runs many schedule steps an optimiser step; the learning-rate warm-up still spans
-    ``optim.warmup_steps`` optimiser steps (and as many schedule steps), while the decay follows the schedule.
-    Without a budget the factor is the schedule's alone."""
+    ``optim.warmup_steps`` optimiser steps (and as many schedule steps), while the decay follows the schedule."""
     cfg = load_config("cpu-quick", ["optim.warmup_steps=100", "train.max_steps=1500"])
     for k in (10, 50, 99):  # 10 schedule steps an optimiser step: the schedule's decay, the optimiser's warm-up
         assert lr_factor(10 * k, cfg, k) == pytest.approx(lr_factor(10 * k, cfg) * (0.01 + 0.99 * k / 100))
