@@ -142,6 +142,26 @@ def test_the_warm_up_lasts_its_optimiser_steps_under_a_time_budget(toy_scene, tm
     assert lrs[-1] < base * decay**0.8 * (0.01 + 0.99 * 9 / 20)  # nine of its 20 steps: decayed, still warming
 
 
+def test_short_budgets_probe_the_thread_count_sooner(toy_scene, tmp_path, monkeypatch):
+    """The thread tuner's first probe waits out 20 steps of a 10-minute budget but only 4 of a 90-s one, where a busy
+    core's first steps at the wrong count would eat a third of the budget; step budgets do not tune at all."""
+    import anisdf.training.trainer as trainer_module
+    from anisdf.training.cpu_threads import ThreadTuner
+
+    warmups = []
+
+    class Spy(ThreadTuner):
+        def __init__(self, max_threads: int, **kwargs) -> None:
+            warmups.append(kwargs.get("warmup"))
+            super().__init__(max_threads, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "ThreadTuner", Spy)
+    for minutes in (1.5, 10.0):
+        _trainer(toy_scene, tmp_path / f"run{minutes}", [f"train.max_minutes={minutes}"]).fit(max_steps=1)
+    _trainer(toy_scene, tmp_path / "steps", ["train.max_steps=1"]).fit()
+    assert warmups == [4, 20]
+
+
 def test_the_sharpness_learns_per_schedule_step_under_a_time_budget(toy_scene, tmp_path):
     """``optim.lr_variance`` is a rate per schedule step: under a budget the variance group's learning rate is
     multiplied by the schedule steps each optimiser step advances (6 s a step of a 60 s budget laid over 25
