@@ -379,8 +379,7 @@ class Trainer:
             self.model.geometry.sdf(torch.zeros(1, 3, device=self.device))
         # on a shared CPU the fastest thread count is measured, not assumed (time budgets only: see cpu_threads)
         threads = torch.get_num_threads()
-        # its first probe waits out the first steps: 20 in a 10-minute budget, 4 in 2 minutes or less (a busy core's
-        # first steps at two threads took 1.4 s each, a third of 90 s before the probe: benchmarks/RESULTS.md)
+        # the first probe after 20 steps of 10 minutes, 4 of 2 minutes or less (busy core: benchmarks/RESULTS.md)
         warm = min(20, max(4, round(self.budget_seconds / 30)))
         tuner = ThreadTuner(threads, warmup=warm) if timed and self.device.type == "cpu" else None
         t_start = self.clock()
