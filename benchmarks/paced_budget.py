@@ -17,8 +17,7 @@ from pathlib import Path
 
 import torch
 
-from anisdf.config import load_config
-from anisdf.data.dataparsers import load_scene
+from anisdf.benchmarks.speed import step_timing_inputs
 from anisdf.errors import AnisdfError
 from anisdf.training.trainer import Trainer
 from anisdf.utils.allocator import tune_malloc
@@ -33,10 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("overrides", nargs="*", help="config overrides key=value, e.g. train.seed=1")
     args = ap.parse_intermixed_args(argv)
     tune_malloc()
-    try:
-        cfg = load_config(args.preset, ["train.val_every=0", "train.ckpt_every=0",
-                                        f"train.max_minutes={args.minutes}", *args.overrides])
-        scene = load_scene(args.data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
+    try:  # the step benchmarks' configuration (no validation, no checkpoints), with this budget
+        cfg, scene, _ = step_timing_inputs(args.data, args.preset, None,
+                                           [f"train.max_minutes={args.minutes}", *args.overrides])
     except AnisdfError as err:
         ap.error(str(err))
     seconds_per_step = 60.0 * args.minutes / args.steps

@@ -52,7 +52,7 @@ LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "
 
 def lr_factor(step: int, cfg: Config, optimiser_step: int | None = None) -> float:
     """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end, both
-    at schedule step ``step``. With ``optimiser_step`` (a time budget) the warm-up also lasts ``warmup_steps``
+    at schedule step ``step``. With ``optimiser_step`` (under a time budget) the warm-up also lasts ``warmup_steps``
     optimiser steps: Adam's first updates need steps, not seconds, and a slow machine's schedule would otherwise end
     the warm-up in a few dozen steps (a sharpness that ran away and a lost surface in 90 s, benchmarks/RESULTS.md)."""
     o = cfg.optim
@@ -279,7 +279,7 @@ class Trainer:
             model.update_grid(self.gen, full=warm, job=self.dist)
             if not bool(model.grid.occupied.any()):  # no ray would have a sample again: nothing left to learn from
                 raise surface_vanished(st.step, self.schedule_pace(bounded=False))
-        f = lr_factor(st.schedule_step, cfg, st.step if self.budget_seconds > 0 else None)
+        f = lr_factor(st.schedule_step, cfg, st.step)  # without a budget the two are the same step
         pace = self.schedule_pace()
         for g, base in zip(self.opt.param_groups, self.base_lrs, strict=True):
             g["lr"] = base * f * (pace if g.get("name") == "variance" else 1.0)
