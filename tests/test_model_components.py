@@ -733,3 +733,31 @@ def test_a_training_render_without_samples_backpropagates():
     assert out.n_samples == 0
     terms["total"].backward()
     assert all(p.grad is None or not p.grad.any() for p in model.parameters())
+
+
+def test_pruning_by_the_querys_values_keeps_the_samples_and_gradients_of_the_pruning_pass(monkeypatch):
+    """prune_after_query: the training render queries every marched sample with its gradient and prunes by those
+    SDF values, without the SDF-only pass; the same samples are kept (here a sharp sphere hides a third of them),
+    with the same picture and parameter gradients within float rounding."""
+    model, o, d = _sphere_and_rays(300.0, 1024)
+    model.train()
+    calls = []
+    distance = model.geometry.distance
+    monkeypatch.setattr(model.geometry, "distance", lambda x: (calls.append(x.shape[0]), distance(x))[1])
+    outs, grads = [], []
+    for after in (False, True):
+        calls.clear()
+        out = model.render_rays(o, d, torch.ones_like(d), train=True, generator=torch.Generator().manual_seed(2),
+                                prune_after_query=after)
+        assert bool(calls) != after  # the SDF-only pass runs only without pruning after the query
+        model.zero_grad()
+        (out.rgb.square().sum() + out.samples.grad.square().sum()).backward()
+        outs.append(out)
+        grads.append({k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None})
+    a, b = outs
+    assert a.n_marched == b.n_marched and a.n_samples == b.n_samples < 0.8 * a.n_marched
+    assert torch.equal(a.samples.ray_idx, b.samples.ray_idx)
+    torch.testing.assert_close(b.rgb, a.rgb, rtol=0, atol=1e-5)
+    assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 5
+    for k, g in grads[0].items():  # the squared normals' gradients run to thousands: relative to each tensor
+        assert float((grads[1][k] - g).norm()) <= 1e-5 * float(g.norm()), k

@@ -237,6 +237,23 @@ def test_steps_without_a_budget_stay_bit_exact(toy_scene, tmp_path):
     assert json.loads((tmp_path / "run" / "run.json").read_text())["schedule"] == "steps"
 
 
+def test_a_step_prunes_by_its_query_while_the_last_step_pruned_little(toy_scene, tmp_path, monkeypatch):
+    """renderer.prune_after_query_below: a step skips the SDF-only pruning pass when the step before pruned less
+    than that fraction of its samples (a new run starts with the pass); the fraction is part of the checkpoint."""
+    tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=6"])
+    seen, render = [], tr.model.render_rays
+    monkeypatch.setattr(tr.model, "render_rays",
+                        lambda *a, **k: (seen.append((k["prune_after_query"], tr.state.pruned)), render(*a, **k))[1])
+    for _ in range(6):
+        tr.train_step()
+    assert seen[0] == (False, 1.0)
+    assert all(after == (pruned < tr.cfg.renderer.prune_after_query_below) for after, pruned in seen)
+    assert sum(after for after, _ in seen) >= 3  # the toy's first steps hide almost nothing
+    resumed = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=6"])
+    resumed.load_state_dict(tr.state_dict())
+    assert resumed.state.pruned == tr.state.pruned < 1.0
+
+
 def test_resume_of_a_checkpoint_from_another_device_kind_warns_and_goes_on(toy_scene, tmp_path, caplog):
     """A CUDA run's random stream (its generator lives on the GPU) does not fit a CPU generator: the run resumes
     from the seed with a warning instead of failing."""

@@ -148,13 +148,11 @@ class RendererConfig:
     """Bounding sphere of the object in normalised coordinates."""
     grid_resolution: int = 128
     grid_refine: int = 1
-    """Training rays march the occupancy grid refined by this factor: the occupied cells are split and children that
-    cannot reach the surface's density band dropped (occupancy_grid.refined), so a ray crosses a thinner shell of
-    samples. 1: the grid itself. Once the grid has at most 400k / factor^3 occupied cells (``models/anisdf.
-    GRID_REFINE_BUDGET``), where a refined cell is at least two march steps wide (``march_steps``)."""
+    """Training rays march the occupancy grid refined by this factor (occupancy_grid.refined: occupied cells split,
+    children that cannot reach the density band dropped; 1: the grid itself), once it has at most 400k / factor^3
+    occupied cells (``models/anisdf.GRID_REFINE_BUDGET``), where a refined cell spans at least two march steps."""
     grid_refine_every: int = 4
-    """Grid updates between two refinements (``grid_refine``); between them the children of cells that emptied are
-    dropped and only the cells that filled are refined. 1: at every update."""
+    """Grid updates between full refinements (``grid_refine``); in between only emptied and filled cells change."""
     grid_update_every: int = 16
     grid_warmup_steps: int = 256
     occupancy_threshold: float = 0.01
@@ -185,6 +183,8 @@ class RendererConfig:
     nerfacc grid: 128). With it, the heads run only on samples in cells where density was seen."""
     early_stop_eps: float = 1e-3
     """Samples whose transmittance (estimated by a cheap SDF-only pass) is below this are dropped; 0 = off."""
+    prune_after_query_below: float = 0.1
+    """After a training step that pruned less than this share of its samples, prune by the query's SDF (no pass)."""
     color_weight_eps: float = 1e-4
     """The radiance heads run only on samples whose rendering weight exceeds this."""
     eval_normal_band: float = 6.0

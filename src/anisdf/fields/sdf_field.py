@@ -179,6 +179,11 @@ class SDFQuery:
     def feature(self, rows: Tensor | None = None) -> Tensor:
         return self.feature_of(rows)
 
+    def select(self, rows: Tensor) -> SDFQuery:
+        """The query at the points ``rows`` (indices) only; their features are still computed on demand."""
+        return SDFQuery(self.sdf.index_select(0, rows), self.grad.index_select(0, rows),
+                        lambda r: self.feature_of(rows if r is None else rows.index_select(0, r)))
+
 
 class SDFField(nn.Module):
     """Fused-granularity (or single-grid) SDF in normalised coordinates ``x`` in [-radius, radius]^3."""

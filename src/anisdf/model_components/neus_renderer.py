@@ -13,6 +13,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
+from anisdf.model_components.ray_marching import Samples
+
 
 class Variance(nn.Module):
     """Learned inverse standard deviation ``s = exp(scale * v)`` of the logistic density."""
@@ -155,3 +157,22 @@ def prune_occluded_progressive(sdf_at: Callable[[Tensor], Tensor], t: Tensor, ra
         log_t.index_add_(0, r, torch.log((1.0 - alpha).clamp_min(1e-10)).double())
         k0, segment = k0 + segment, 2 * segment
     return keep, sdf
+
+
+@torch.no_grad()
+def prune_hidden(distance: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor, s: Samples, step: float,
+                 inv_s: Tensor, eps: float, one_pass: bool, need_sdf: bool) -> tuple[Tensor, Tensor | None]:
+    """The keep mask of the marched samples ``s`` (:func:`prune_occluded`) from the SDF ``distance(points)``: in one
+    pass over every sample (``one_pass``: on a GPU each progressive round reads the selection back), else front to
+    back (:func:`prune_occluded_progressive`: a ray's samples behind its opaque point are never queried), which with
+    ``need_sdf`` also returns the kept samples' SDF values."""
+    if one_pass:
+        sdf = distance(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
+        return prune_occluded(sdf, s.t, s.ray_idx, s.n_rays, step, inv_s, eps), None
+
+    def sdf_at(i: Tensor) -> Tensor:
+        r = s.ray_idx[i]
+        return distance(origins[r] + dirs[r] * s.t[i, None])
+
+    keep, sdf = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, s.n_rays, step, inv_s, eps, need_sdf=need_sdf)
+    return keep, sdf[keep] if need_sdf else None

@@ -25,8 +25,8 @@ from anisdf.model_components.neus_renderer import (
     estimated_alpha,
     neus_alpha,
     packed_weights,
+    prune_hidden,
     prune_occluded,
-    prune_occluded_progressive,
 )
 from anisdf.model_components.occupancy_grid import OccupancyGrid, march_grid_state
 from anisdf.model_components.ray_marching import march
@@ -227,11 +227,13 @@ class AniSDFModel(nn.Module):
     # ----------------------------------------------------------------------------------------- render
     def render_rays(self, origins: Tensor, dirs: Tensor, background: Tensor, train: bool = False,
                     generator: torch.Generator | None = None, codes: Tensor | None = None,
-                    grid: OccupancyGrid | None = None) -> RenderOutput:
+                    grid: OccupancyGrid | None = None, prune_after_query: bool = False) -> RenderOutput:
         """Render rays (NeuS, Eq. 1): per-ray maps, and in training the per-sample tensors the losses read.
         ``codes``: [B, dim] per-ray appearance codes (:meth:`codes_for`) when the model has them (default: the mean
         code). ``grid``: the occupancy grid to march (default: the training grid, refined in training with
-        ``renderer.grid_refine``)."""
+        ``renderer.grid_refine``). ``prune_after_query`` (training): every marched sample is queried with its
+        gradient and the query's SDF values prune (the mask of the SDF-only pass, which is then skipped): cheaper
+        while little is hidden (``renderer.prune_after_query_below``)."""
         n_rays = origins.shape[0]
         rc = self.cfg.renderer
         if grid is None:
@@ -240,20 +242,11 @@ class AniSDFModel(nn.Module):
                   rc.max_samples_per_ray, generator if train else None)
         inv_s = self.variance()
         n_marched, sdf_kept = s.n, None
-        if rc.early_stop_eps > 0 and s.n > 0:  # drop samples hidden behind the surface (cheap, no grad)
-            if train and origins.device.type in self.one_pass_pruning:
-                with torch.no_grad():  # the SDF row alone (no feature): a third of the MLP's work
-                    sdf0 = self.geometry.distance(origins[s.ray_idx] + dirs[s.ray_idx] * s.t[:, None])
-                keep = prune_occluded(sdf0, s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(),
-                                      rc.early_stop_eps)
-            else:  # front to back, a ray's samples behind its opaque point are never queried
-                def sdf_at(i: Tensor) -> Tensor:
-                    r = s.ray_idx[i]
-                    return self.geometry.distance(origins[r] + dirs[r] * s.t[i, None])
-
-                keep, sdf_kept = prune_occluded_progressive(sdf_at, s.t, s.ray_idx, n_rays, self.step_size,
-                                                            inv_s.detach(), rc.early_stop_eps, need_sdf=not train)
-                sdf_kept = sdf_kept[keep]
+        late = train and prune_after_query and rc.early_stop_eps > 0 and s.n > 0
+        if rc.early_stop_eps > 0 and s.n > 0 and not late:  # drop samples hidden behind the surface (no grad)
+            keep, sdf_kept = prune_hidden(self.geometry.distance, origins, dirs, s, self.step_size, inv_s.detach(),
+                                          rc.early_stop_eps, train and origins.device.type in self.one_pass_pruning,
+                                          need_sdf=not train)
             s = s.select(keep)
         # index_select: with refined cameras the rays carry gradients, and its backward (index_add) sums the
         # samples of a ray in a fixed order where indexing's (a parallel scatter on CPU) does not: exact resume
@@ -266,6 +259,12 @@ class AniSDFModel(nn.Module):
             sub = (sdf_kept.abs() * inv_s < rc.eval_normal_band).nonzero()[:, 0]
         xq = x if sub is None else x[sub]
         q = self.geometry.query(xq, create_graph=train, fd_eps=self.fd_eps())
+        if late:  # the same estimate from the query's SDF values; their rows are dropped from its backward
+            rows = prune_occluded(q.sdf.detach(), s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(),
+                                  rc.early_stop_eps).nonzero()[:, 0]
+            if rows.numel() < s.n:
+                q, s, x, d = q.select(rows), s.select(rows), x.index_select(0, rows), d.index_select(0, rows)
+                xq = x
         sdf, grad = q.sdf, q.grad
         if xq.requires_grad:  # rays of refined cameras, or a camera eval fits: the field treats x as a constant, so
             # the SDF's first-order change with the point, sdf(x + dx) = sdf + grad . dx, carries the gradient to them

@@ -48,8 +48,6 @@ LOSS_TERMS = ("rgb", "eikonal", "curvature", "orientation", "entropy", "mask", "
 """Every name AniSDFModel.losses can return."""
 
 
-
-
 def lr_factor(step: int, cfg: Config, optimiser_step: int | None = None) -> float:
     """Linear warm-up from 1% over ``warmup_steps``, then exponential decay to ``final_lr_factor`` at the end, both
     at schedule step ``step``. With ``optimiser_step`` (under a time budget) the warm-up also lasts ``warmup_steps``
@@ -85,6 +83,7 @@ class TrainState:
     loss_ema: float = 0.0
     schedule_step: int = 0
     """Position in the schedule (see the module docstring); never moves back, also when a budget is raised."""
+    pruned: float = 1.0  # the fraction of its marched samples the last step pruned (prune_after_query_below)
 
 
 class Trainer:
@@ -286,7 +285,8 @@ class Trainer:
         batch = self.next_batch(st.n_rays)
         origins, dirs, codes = self.camera_rays(batch)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.use_amp), model.cached_weights():
-            out = model.render_rays(origins, dirs, batch.background, train=True, generator=self.ray_gen, codes=codes)
+            out = model.render_rays(origins, dirs, batch.background, train=True, generator=self.ray_gen, codes=codes,
+                                    prune_after_query=st.pruned < rc.prune_after_query_below)
             if self.dist is None:
                 counts = (out.n_samples, out.n_marched)
                 terms = model.losses(out, batch.rgb, batch.mask, self.gen)
@@ -318,7 +318,7 @@ class Trainer:
                 "Try a lower optim.lr or loss weights.")
         self.opt.step()
         self.model.variance.project_()
-        n_samples, n_marched = counts
+        (n_samples, n_marched), st.pruned = counts, 1.0 - counts[0] / max(counts[1], 1)
         # rays per step follow the sample budget of the full pass, and of the cheap pruning pass (x4); the budget
         # is per rank, the counts of all ranks (so every rank draws as many rays)
         budget = cfg.train.samples_per_step * self.world_size
