@@ -242,8 +242,9 @@ class AniSDFModel(nn.Module):
                   rc.max_samples_per_ray, generator if train else None)
         inv_s = self.variance()
         n_marched, sdf_kept = s.n, None
-        late = train and prune_after_query and rc.early_stop_eps > 0 and s.n > 0
-        if rc.early_stop_eps > 0 and s.n > 0 and not late:  # drop samples hidden behind the surface (no grad)
+        prune = rc.early_stop_eps > 0 and s.n > 0  # drop samples hidden behind the surface
+        late = prune and train and prune_after_query
+        if prune and not late:  # by the SDF-only pass (no grad)
             keep, sdf_kept = prune_hidden(self.geometry.distance, origins, dirs, s, self.step_size, inv_s.detach(),
                                           rc.early_stop_eps, train and origins.device.type in self.one_pass_pruning,
                                           need_sdf=not train)
@@ -259,7 +260,7 @@ class AniSDFModel(nn.Module):
             sub = (sdf_kept.abs() * inv_s < rc.eval_normal_band).nonzero()[:, 0]
         xq = x if sub is None else x[sub]
         q = self.geometry.query(xq, create_graph=train, fd_eps=self.fd_eps())
-        if late:  # the same estimate from the query's SDF values; their rows are dropped from its backward
+        if late:  # the same estimate from the query's SDF values; the hidden samples' rows leave the query
             rows = prune_occluded(q.sdf.detach(), s.t, s.ray_idx, n_rays, self.step_size, inv_s.detach(),
                                   rc.early_stop_eps).nonzero()[:, 0]
             if rows.numel() < s.n:
