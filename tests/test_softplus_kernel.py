@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from anisdf.config import load_config
-from anisdf.fields import asg
+from anisdf.fields import asg, mlp, sdf_mlp
 from anisdf.fields import softplus as sp
 from anisdf.fields.sdf_field import BETA, SDFField, mlp_with_input_grad
 from anisdf.models.anisdf import AniSDFModel
@@ -83,8 +83,8 @@ def test_reference_backend_stays_on_pytorch(monkeypatch) -> None:
     def forbidden(z):
         raise AssertionError("a compiled kernel ran under encoding_backend=torch")
 
-    monkeypatch.setattr(sp, "kernel_for", forbidden)
-    monkeypatch.setattr(asg, "kernel_for", forbidden)
+    for module in (sp, asg, sdf_mlp, mlp):
+        monkeypatch.setattr(module, "kernel_for", forbidden)
     cfg = load_config("cpu-quick", ["geometry.encoding_backend=torch"])
     field = SDFField(cfg.geometry)
     x = torch.rand(64, 3) * 1.6 - 0.8

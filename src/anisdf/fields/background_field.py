@@ -20,7 +20,7 @@ from torch import Tensor, nn
 
 from anisdf.fields.encodings import sh_encoding
 from anisdf.fields.hash_grid import GridSpec, HashGrid
-from anisdf.fields.radiance_field import mlp
+from anisdf.fields.mlp import mlp
 from anisdf.model_components.ray_marching import sphere_intersect
 
 

@@ -17,16 +17,7 @@ from torch import Tensor, nn
 from anisdf.config import AppearanceConfig
 from anisdf.fields.asg import asg_features, asg_frames
 from anisdf.fields.encodings import positional_encoding, sh_encoding
-
-
-def mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    d = in_dim
-    for _ in range(n_hidden):
-        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
-        d = hidden
-    layers.append(nn.Linear(d, out_dim))
-    return nn.Sequential(*layers)
+from anisdf.fields.mlp import mlp, run_mlp
 
 
 class RadianceField(nn.Module):
@@ -57,19 +48,20 @@ class RadianceField(nn.Module):
         along unit ``dirs``; ``code``: the points' appearance codes when the field takes them."""
         geo = torch.cat([feat, normal], dim=-1)
         codes = () if code is None else (code.to(feat.dtype),)
-        c_view = torch.sigmoid(self.view_mlp(torch.cat([x, geo, sh_encoding(dirs, self.cfg.sh_degree), *codes],
-                                                       dim=-1)))
+        c_view = torch.sigmoid(run_mlp(self.view_mlp, torch.cat([x, geo, sh_encoding(dirs, self.cfg.sh_degree),
+                                                                 *codes], dim=-1), self.fast))
         if self.cfg.kind == "view":
             return {"rgb": c_view, "c_view": c_view}
-        w = torch.sigmoid(self.weight_mlp(torch.cat([x, geo], dim=-1)))
+        w = torch.sigmoid(run_mlp(self.weight_mlp, torch.cat([x, geo], dim=-1), self.fast))
         d_dot_n = (dirs * normal).sum(-1, keepdim=True)
         refl = dirs - 2.0 * d_dot_n * normal
         n_dot_v = -d_dot_n
         if self.cfg.kind == "blend":
-            f_asg = asg_features(self.par_mlp(geo).view(-1, self.n_lobes, 4), refl, self.frames, self.fast)
+            f_asg = asg_features(run_mlp(self.par_mlp, geo, self.fast).view(-1, self.n_lobes, 4), refl, self.frames,
+                                 self.fast)
             ref_in = torch.cat([f_asg, refl, n_dot_v, *codes], dim=-1)
         else:
             ref_in = torch.cat([positional_encoding(refl, self.cfg.pe_frequencies), n_dot_v, geo, *codes], dim=-1)
-        c_ref = torch.sigmoid(self.ref_mlp(ref_in))
+        c_ref = torch.sigmoid(run_mlp(self.ref_mlp, ref_in, self.fast))
         rgb = w * c_view + (1.0 - w) * c_ref
         return {"rgb": rgb, "c_view": c_view, "c_ref": c_ref, "weight": w[:, 0]}

@@ -10,8 +10,8 @@ as ``m..L``; the release, and this code, train its levels ``1..m`` as well). Bot
 11000). ``geometry.kind=single`` is the ablation: one grid of ``L`` levels switched on coarse-to-fine.
 :meth:`SDFField.branch_gradient` gives one branch's normal alone (the curvature term's coarse target).
 
-Analytic normals are computed in closed form through each MLP (:func:`mlp_with_input_grad`) and through the hash
-grid by one first-order ``autograd.grad``: training differentiates them once more for the eikonal and curvature
+Analytic normals are computed in closed form through each MLP (:func:`.sdf_mlp.mlp_with_input_grad`) and through
+the hash grid by one first-order ``autograd.grad``: training differentiates them once more for the eikonal and curvature
 terms, with no second-order autograd through the MLP, so ``train.compile`` can fuse the MLP part as well.
 """
 
@@ -28,33 +28,8 @@ from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
 from anisdf.fields.hash_grid import GridSpec, HashGrid, jacobian_transpose_product
-from anisdf.fields.softplus import softplus, softplus_slope
-
-BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
-
-
-def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor], fast: bool = True
-                        ) -> tuple[Tensor, Tensor, Tensor]:
-    """The first output ``out_0 = w_L sp(... sp(W_1 h + b_1) ...) + b_L[0]`` [N] of a softplus MLP, its last hidden
-    activation ``a`` [N, H] and ``d out_0 / d h`` [N, D]. The other outputs (the geometry feature) are
-    ``F.linear(a, W_L[1:], b_L[1:])``, computed by the caller for the rows that need them (:class:`SDFQuery`).
-
-    The gradient is the chain rule written out: ``g = (((w_L * s_{L-1}) W_{L-1} * s_{L-2}) ... * s_1) W_1`` with
-    ``w_L`` the first row of ``W_L`` and ``s_i = sigmoid(beta z_i)`` the slope of softplus at layer ``i``'s
-    pre-activation ``z_i``. Only first-order operators: a loss on ``g`` needs one ordinary backward, and the whole
-    function is a plain graph that ``torch.compile`` can fuse (a double backward cannot be compiled). Each softplus
-    and its slope come from one pass (:func:`anisdf.fields.softplus.softplus_slope`; ``fast=False``: PyTorch's).
-    """
-    slopes = []
-    for w, b in zip(weights[:-1], biases[:-1], strict=True):
-        h, s = softplus_slope(F.linear(h, w, b), BETA, fast)
-        slopes.append(s)
-    w_sdf = weights[-1][0]
-    out0 = torch.addmv(biases[-1][0].expand(h.shape[0]), h, w_sdf)  # a 0-d bias: a 0-d result for 0 rows
-    g = w_sdf.expand(h.shape[0], -1)
-    for w, s in zip(reversed(weights[:-1]), reversed(slopes), strict=True):
-        g = (g * s) @ w
-    return out0, h, g
+from anisdf.fields.sdf_mlp import BETA, mlp_with_input_grad
+from anisdf.fields.softplus import softplus
 
 
 class SDFBranch(nn.Module):

@@ -735,6 +735,16 @@ torch::Tensor encode_jacobian_backward(std::optional<torch::Tensor> g, std::opti
 std::vector<torch::Tensor> softplus_slope(torch::Tensor z, double beta, bool want_slope);
 torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tensor> da,
                                       std::optional<torch::Tensor> ds, double beta);
+std::vector<torch::Tensor> softplus_bias_slope(torch::Tensor z, torch::Tensor b, double beta,
+                                               std::optional<torch::Tensor> w);
+std::vector<torch::Tensor> softplus_layer_backward(torch::Tensor s, double beta, std::optional<torch::Tensor> da,
+                                                   std::optional<torch::Tensor> d_out,
+                                                   std::optional<torch::Tensor> w,
+                                                   std::optional<torch::Tensor> d_gs,
+                                                   std::optional<torch::Tensor> g);
+// kernels/relu_cpu.cpp
+torch::Tensor bias_act_(torch::Tensor z, torch::Tensor b, bool relu);
+torch::Tensor relu_backward_(torch::Tensor d, torch::Tensor a);
 // kernels/asg_cpu.cpp
 torch::Tensor asg_forward(torch::Tensor par, torch::Tensor w, torch::Tensor frames);
 std::vector<torch::Tensor> asg_backward(torch::Tensor grad_out, torch::Tensor par, torch::Tensor w,
@@ -750,7 +760,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   const auto nogil = py::call_guard<py::gil_scoped_release>();
   m.doc() =
       "anisdf CPU kernels: hash-grid encoding (forward, backward, double backward, forward with the Jacobian), "
-      "softplus with its slope, the ASG encoding, the Jacobian's product J^T g";
+      "softplus with its slope (and an SDF MLP layer's element-wise passes), the colour heads' ReLU layers, "
+      "the ASG encoding, the Jacobian's product J^T g";
   m.def("encode_forward", &encode_forward, "out[N, L*F] = hash_encode(x, table)", py::arg("x"), py::arg("table"),
         py::arg("levels"), py::arg("log2_size"), nogil);
   m.def("encode_backward", &encode_backward, "(grad_table, grad_x) of hash_encode; None where not needed",
@@ -770,6 +781,17 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("z"), py::arg("beta"), py::arg("want_slope"), nogil);
   m.def("softplus_slope_backward", &softplus_slope_backward, "dz = da * s + ds * beta * s * (1 - s)", py::arg("s"),
         py::arg("da"), py::arg("ds"), py::arg("beta"), nogil);
+  m.def("softplus_bias_slope", &softplus_bias_slope,
+        "(a, s, gs): a = softplus_beta(z + b) written over z, s = sigmoid(beta (z + b)), gs = s * w if w is given",
+        py::arg("z"), py::arg("b"), py::arg("beta"), py::arg("w"), nogil);
+  m.def("softplus_layer_backward", &softplus_layer_backward,
+        "(dz, db, dw): dz = (da + d_out w^T) s + d_gs G beta s (1 - s), G = g or w; db, dw column sums",
+        py::arg("s"), py::arg("beta"), py::arg("da"), py::arg("d_out"), py::arg("w"), py::arg("d_gs"),
+        py::arg("g"), nogil);
+  m.def("bias_act_", &bias_act_, "z <- max(z + b, 0) (relu) or z + b, in place; returns z", py::arg("z"),
+        py::arg("b"), py::arg("relu"), nogil);
+  m.def("relu_backward_", &relu_backward_, "d <- d * (a > 0) in place; returns the column sums", py::arg("d"),
+        py::arg("a"), nogil);
   m.def("asg_forward", &asg_forward, "ASG features [B, L*2] of raw lobe parameters par [B, L, 4] and directions w",
         py::arg("par"), py::arg("w"), py::arg("frames"), nogil);
   m.def("asg_backward", &asg_backward, "(grad_par, grad_w or None) of asg_forward", py::arg("grad_out"),

@@ -1,0 +1,88 @@
+"""The SDF MLP with its closed-form input gradient: the fused CPU path (hand-written backward, kernels/softplus_cpu.cpp)
+against the autograd reference (fields/sdf_mlp.py)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from anisdf.fields import sdf_mlp
+
+
+def _mlp(n_hidden: int, d_in: int = 27, width: int = 64, n_out: int = 17, seed: int = 0
+         ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    g = torch.Generator().manual_seed(seed)
+    dims = [d_in] + [width] * n_hidden + [n_out]
+    ws = [(torch.randn(dims[i + 1], dims[i], generator=g) * 0.3).requires_grad_(True) for i in range(len(dims) - 1)]
+    bs = [(torch.randn(dims[i + 1], generator=g) * 0.05).requires_grad_(True) for i in range(len(dims) - 1)]
+    return ws, bs
+
+
+def _grads(fn, h: torch.Tensor, ws: list[torch.Tensor], bs: list[torch.Tensor], use: str, rows: torch.Tensor
+           ) -> list[torch.Tensor]:
+    """Outputs and the gradients of a loss on the outputs named in ``use`` (out, hidden (feature rows), grad)."""
+    out, hidden, grad = fn(h, ws, bs)
+    loss = h.new_zeros(())
+    if "out" in use:
+        loss = loss + (out * torch.linspace(-1, 2, out.shape[0])).sum()
+    if "hidden" in use:  # the feature of some rows, as the renderer asks for them
+        feat = torch.nn.functional.linear(hidden.index_select(0, rows), ws[-1][1:], bs[-1][1:])
+        loss = loss + feat.sin().sum()
+    if "grad" in use:  # eikonal, and the grid part of the gradient as forward_with_grad slices it
+        loss = loss + (grad.norm(dim=-1) - 1).square().sum() + grad[:, 3:9].square().sum()
+    return [out, hidden, grad, *torch.autograd.grad(loss, [h, *ws, *bs], allow_unused=True)]
+
+
+@pytest.mark.parametrize("n_hidden", [1, 2, 3])
+@pytest.mark.parametrize("use", ["out+hidden+grad", "grad", "out", "hidden+grad"])
+def test_fused_path_matches_the_reference(kernel, n_hidden: int, use: str) -> None:
+    ws, bs = _mlp(n_hidden)
+    g = torch.Generator().manual_seed(1)
+    h = (torch.randn(1500, 27, generator=g) * 0.4).requires_grad_(True)
+    rows = torch.randperm(1500, generator=g)[:900]
+    got = _grads(sdf_mlp.mlp_with_input_grad, h, ws, bs, use, rows)
+    want = _grads(sdf_mlp.mlp_with_input_grad_reference, h, ws, bs, use, rows)
+    for a, b in zip(got, want, strict=True):
+        if b is None:
+            assert a is None or not a.abs().any()
+            continue
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * max(float(b.detach().abs().max()), 1e-6))
+
+
+def test_fused_path_is_taken_and_handles_no_rows(kernel, monkeypatch) -> None:
+    ws, bs = _mlp(2)
+    calls = []
+    real = sdf_mlp._FusedMLPWithInputGrad.apply
+    monkeypatch.setattr(sdf_mlp._FusedMLPWithInputGrad, "apply", lambda *a: calls.append(1) or real(*a))
+    h = torch.zeros(0, 27, requires_grad=True)
+    out, hidden, grad = sdf_mlp.mlp_with_input_grad(h, ws, bs)
+    assert calls and out.shape == (0,) and hidden.shape == (0, 64) and grad.shape == (0, 27)
+    (out.sum() + grad.sum()).backward()
+    assert all(w.grad is not None and not w.grad.abs().any() for w in ws[:-1])
+
+
+def test_bias_gradients_do_not_depend_on_the_thread_count(kernel) -> None:
+    """The kernel's column sums run over fixed blocks of rows, added in order: 1 and 2 threads give the same bits
+    (the weight gradients are matrix products, whose split over threads is oneDNN's)."""
+    ws, bs = _mlp(2)
+    h = (torch.randn(5000, 27, generator=torch.Generator().manual_seed(2)) * 0.4).requires_grad_(True)
+    rows = torch.arange(0, 5000, 3)
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            results.append(_grads(sdf_mlp.mlp_with_input_grad, h, ws, bs, "out+hidden+grad", rows))
+    finally:
+        torch.set_num_threads(threads)
+    n_w = len(ws)
+    for a, b in zip(results[0][:4] + results[0][4 + n_w:], results[1][:4] + results[1][4 + n_w:], strict=True):
+        assert torch.equal(a, b)
+
+
+def test_kernel_rejects_mismatched_shapes(kernel) -> None:
+    s = torch.rand(10, 8)
+    with pytest.raises(RuntimeError, match=r"d_gs must be \[10, 8\]"):
+        kernel.softplus_layer_backward(s, 100.0, None, None, torch.ones(8), torch.ones(10, 7), None)
+    with pytest.raises(RuntimeError, match="b must have 8 elements"):
+        kernel.softplus_bias_slope(torch.rand(10, 8), torch.ones(9), 100.0, None)
