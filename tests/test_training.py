@@ -269,16 +269,18 @@ def test_resume_of_a_checkpoint_from_another_device_kind_warns_and_goes_on(toy_s
     assert b.fit()["step"] == 4
 
 
-def test_a_step_reads_the_device_only_where_shapes_depend_on_data(toy_scene, tmp_path):
+def test_a_step_reads_the_device_only_where_shapes_depend_on_data(toy_scene, tmp_path, monkeypatch):
     """On a GPU every read of a device value waits for the queue to drain, and the step is launch-bound there
     (benchmarks/RESULTS.md). Forward and backward may read only the sample selections (one ``nonzero`` per march
     chunk, the pruning and the visible set); the step's numbers come back in one ``tolist`` after backward, and
     the sample counts that set the next batch are known on the host. (The CPU optimiser reads its step counters;
     CUDA's fused one does not, and is left out.)"""
+    import anisdf.models.anisdf as model_module
     from anisdf.benchmarks.opcount import count_step
 
     tr = _trainer(toy_scene, tmp_path / "run", ["train.max_steps=10", "renderer.early_stop_eps=1e-3"])
     tr.model.one_pass_pruning = ("cpu", "cuda")  # the GPU's pruning pass (CPU training prunes front to back)
+    monkeypatch.setattr(model_module, "kernel_for", lambda t: None)  # the GPU's march (the CPU kernel reads nothing)
     for _ in range(3):
         tr.train_step()
     c = count_step(tr)

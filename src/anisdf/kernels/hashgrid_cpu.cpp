@@ -745,6 +745,11 @@ std::vector<torch::Tensor> softplus_layer_backward(torch::Tensor s, double beta,
 // kernels/relu_cpu.cpp
 torch::Tensor bias_act_(torch::Tensor z, torch::Tensor b, bool relu);
 torch::Tensor relu_backward_(torch::Tensor d, torch::Tensor a);
+// kernels/march_cpu.cpp
+std::vector<torch::Tensor> march_rays(torch::Tensor origins, torch::Tensor dirs, torch::Tensor near, torch::Tensor far,
+                                      torch::Tensor u, double step, int64_t max_samples,
+                                      std::optional<torch::Tensor> occupied, double radius, double inv_cell,
+                                      int64_t resolution);
 // kernels/asg_cpu.cpp
 torch::Tensor asg_forward(torch::Tensor par, torch::Tensor w, torch::Tensor frames);
 std::vector<torch::Tensor> asg_backward(torch::Tensor grad_out, torch::Tensor par, torch::Tensor w,
@@ -761,7 +766,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.doc() =
       "anisdf CPU kernels: hash-grid encoding (forward, backward, double backward, forward with the Jacobian), "
       "softplus with its slope (and an SDF MLP layer's element-wise passes), the colour heads' ReLU layers, "
-      "the ASG encoding, the Jacobian's product J^T g";
+      "ray marching, the ASG encoding, the Jacobian's product J^T g";
   m.def("encode_forward", &encode_forward, "out[N, L*F] = hash_encode(x, table)", py::arg("x"), py::arg("table"),
         py::arg("levels"), py::arg("log2_size"), nogil);
   m.def("encode_backward", &encode_backward, "(grad_table, grad_x) of hash_encode; None where not needed",
@@ -792,6 +797,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("b"), py::arg("relu"), nogil);
   m.def("relu_backward_", &relu_backward_, "d <- d * (a > 0) in place; returns the column sums", py::arg("d"),
         py::arg("a"), nogil);
+  m.def("march_rays", &march_rays, "(ray_idx, t) of the samples near + (k + u) step < far in occupied cells",
+        py::arg("origins"), py::arg("dirs"), py::arg("near"), py::arg("far"), py::arg("u"), py::arg("step"),
+        py::arg("max_samples"), py::arg("occupied"), py::arg("radius"), py::arg("inv_cell"), py::arg("resolution"),
+        nogil);
   m.def("asg_forward", &asg_forward, "ASG features [B, L*2] of raw lobe parameters par [B, L, 4] and directions w",
         py::arg("par"), py::arg("w"), py::arg("frames"), nogil);
   m.def("asg_backward", &asg_backward, "(grad_par, grad_w or None) of asg_forward", py::arg("grad_out"),

@@ -1,13 +1,16 @@
 """Uniform ray marching inside the bounding sphere, keeping samples in occupied cells (packed layout).
 
 Samples of all rays are stored back to back, ordered by ray then by distance: ``ray_idx`` [S], ``t`` (midpoint)
-[S] and ``dt`` [S]. nerfacc offers this on CUDA only; this version runs wherever torch does.
+[S] and ``dt`` [S]. nerfacc offers this on CUDA only; this version runs wherever torch does. On CPU the compiled
+kernel (``kernels/march_cpu.cpp``, passed in as ``kernel``) walks each ray once, where the PyTorch reference builds
+every ray's steps, their cells and a mask: the same samples (tests/test_march_kernel.py).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import ModuleType
 
 import torch
 from torch import Tensor
@@ -51,14 +54,28 @@ def sphere_intersect(origins: Tensor, dirs: Tensor, radius: float) -> tuple[Tens
 
 @torch.no_grad()
 def march(origins: Tensor, dirs: Tensor, grid: OccupancyGrid | None, radius: float, step: float,
-          max_samples: int, generator: torch.Generator | None = None, chunk_rays: int = 4096) -> Samples:
+          max_samples: int, generator: torch.Generator | None = None, chunk_rays: int = 4096,
+          kernel: ModuleType | None = None) -> Samples:
     """Stratified samples every ``step`` along each ray within the sphere, kept where the grid is occupied.
 
     With a ``generator`` the first sample of each ray is jittered inside its step (training); otherwise
-    samples sit at the step midpoints (evaluation, deterministic).
+    samples sit at the step midpoints (evaluation, deterministic). ``kernel``: the compiled CPU extension
+    (:func:`anisdf.fields.hash_grid.cpu_kernel.kernel_for` of float32 CPU rays) to march with, else the reference.
     """
     dev = origins.device
     near, far = sphere_intersect(origins, dirs, radius)
+    mod = kernel
+    if mod is not None:
+        if generator is not None:  # the reference's draws, chunk by chunk
+            u = torch.cat([torch.rand(min(chunk_rays, origins.shape[0] - s), generator=generator,
+                                      device=generator.device) for s in range(0, origins.shape[0], chunk_rays)])
+        else:
+            u = torch.full((origins.shape[0],), 0.5)
+        occ = None if grid is None else grid.occupied
+        ray_idx, t = mod.march_rays(origins, dirs, near, far, u.to(dev), step, max_samples, occ,
+                                    0.0 if grid is None else grid.radius, 0.0 if grid is None else 1.0 / grid.cell_size,
+                                    0 if grid is None else grid.resolution)
+        return Samples(ray_idx, t, torch.full_like(t, step), origins.shape[0])
     out_r, out_t = [], []
     starts = range(0, origins.shape[0], chunk_rays)
     if generator is not None:

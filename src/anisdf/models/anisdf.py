@@ -15,6 +15,7 @@ from torch.nn.utils import parametrize
 
 from anisdf.config import Config
 from anisdf.fields.background_field import BackgroundNeRF, EnvironmentBackground
+from anisdf.fields.hash_grid.cpu_kernel import kernel_for
 from anisdf.fields.radiance_field import RadianceField
 from anisdf.fields.sdf_field import SDFField, mlp_with_input_grad
 from anisdf.model_components import losses as L
@@ -238,8 +239,8 @@ class AniSDFModel(nn.Module):
         rc = self.cfg.renderer
         if grid is None:
             grid = self.march_grid if train and self.march_grid is not None else self.grid
-        s = march(origins, dirs, grid, self.radius, self.step_size,
-                  rc.max_samples_per_ray, generator if train else None)
+        s = march(origins, dirs, grid, self.radius, self.step_size, rc.max_samples_per_ray,
+                  generator if train else None, kernel=kernel_for(origins) if self.appearance.fast else None)
         inv_s = self.variance()
         n_marched, sdf_kept = s.n, None
         prune = rc.early_stop_eps > 0 and s.n > 0  # drop samples hidden behind the surface

@@ -1,8 +1,9 @@
 """The compiled CPU backend: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``, and in the same extension
 ``softplus_cpu.cpp``, the SDF MLPs' softplus with its slope: :mod:`anisdf.fields.softplus` and
 :mod:`anisdf.fields.sdf_mlp`, ``asg_cpu.cpp``, the colour heads' ASG encoding: :mod:`anisdf.fields.asg`,
-``relu_cpu.cpp``, the colour heads' ReLU layers: :mod:`anisdf.fields.mlp`, and ``jacobian_product_cpu.cpp``, the
-normal's grid part ``J^T g``: :func:`.ops.jacobian_transpose_product`).
+``relu_cpu.cpp``, the colour heads' ReLU layers: :mod:`anisdf.fields.mlp`, ``march_cpu.cpp``, ray marching:
+:mod:`anisdf.model_components.ray_marching`, and ``jacobian_product_cpu.cpp``, the normal's grid part ``J^T g``:
+:func:`.ops.jacobian_transpose_product`).
 
 Built with ``torch.utils.cpp_extension.load`` on first use, once per process, under ``$ANISDF_KERNEL_DIR``, else
 torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), which every checkout
@@ -38,7 +39,7 @@ log = logging.getLogger(__name__)
 
 _KERNELS = Path(__file__).resolve().parents[2] / "kernels"
 SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp", _KERNELS / "asg_cpu.cpp",
-           _KERNELS / "jacobian_product_cpu.cpp", _KERNELS / "relu_cpu.cpp")
+           _KERNELS / "jacobian_product_cpu.cpp", _KERNELS / "relu_cpu.cpp", _KERNELS / "march_cpu.cpp")
 """The extension's sources; the first holds the Python bindings of all of them."""
 HEADERS = (_KERNELS / "fast_math.h",)
 """Headers the sources include: part of what the build's name hashes."""
