@@ -86,3 +86,17 @@ def test_kernel_rejects_mismatched_shapes(kernel) -> None:
         kernel.softplus_layer_backward(s, 100.0, None, None, torch.ones(8), torch.ones(10, 7), None)
     with pytest.raises(RuntimeError, match="b must have 8 elements"):
         kernel.softplus_bias_slope(torch.rand(10, 8), torch.ones(9), 100.0, None)
+
+
+def test_distance_without_gradient_matches_the_reference(kernel) -> None:
+    ws, bs = _mlp(2)
+    h = torch.randn(2000, 27, generator=torch.Generator().manual_seed(3)) * 0.4
+    want = sdf_mlp.mlp_with_input_grad_reference(h, ws, bs, fast=False)[0]
+    with torch.no_grad():
+        got = sdf_mlp.mlp_distance(h, ws, bs)
+        plain = sdf_mlp.mlp_distance(h, ws, bs, fast=False)
+    torch.testing.assert_close(got, want.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(plain, want.detach(), rtol=1e-5, atol=1e-6)
+    with_grad = sdf_mlp.mlp_distance(h, ws, bs)  # with gradient: PyTorch's operators, differentiable
+    assert with_grad.requires_grad
+    torch.testing.assert_close(with_grad.detach(), want.detach(), rtol=1e-5, atol=1e-6)

@@ -28,7 +28,7 @@ from torch.nn.utils.parametrizations import weight_norm
 
 from anisdf.config import GeometryConfig
 from anisdf.fields.hash_grid import GridSpec, HashGrid, jacobian_transpose_product
-from anisdf.fields.sdf_mlp import BETA, mlp_with_input_grad
+from anisdf.fields.sdf_mlp import BETA, mlp_distance, mlp_with_input_grad
 from anisdf.fields.softplus import softplus
 
 
@@ -222,11 +222,8 @@ class SDFField(nn.Module):
             xn = self._normalised(x)
             parts = []
             for b in self.branches:
-                h = torch.cat([xn, b.encode(xn)], dim=-1)
-                for layer in b.layers[:-1]:
-                    h = softplus(layer(h), BETA, b.fast)
-                last = b.layers[-1]
-                parts.append(torch.addmv(last.bias[0].expand(h.shape[0]), h, last.weight[0]))
+                parts.append(mlp_distance(torch.cat([xn, b.encode(xn)], dim=-1), [lay.weight for lay in b.layers],
+                                          [lay.bias for lay in b.layers], b.fast))
             return self._fuse(parts) * self.radius
 
     def with_gradient(self, x: Tensor, create_graph: bool, fd_eps: float | None = None

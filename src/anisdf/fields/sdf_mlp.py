@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from anisdf.fields.hash_grid.cpu_kernel import kernel_for
-from anisdf.fields.softplus import softplus_slope
+from anisdf.fields.softplus import softplus, softplus_slope
 
 BETA = 100.0  # Softplus sharpness of the SDF MLPs (NeuS, the release)
 
@@ -43,6 +43,18 @@ def mlp_with_input_grad_reference(h: Tensor, weights: list[Tensor], biases: list
     for w, s in zip(reversed(weights[:-1]), reversed(slopes), strict=True):
         g = (g * s) @ w
     return out0, h, g
+
+
+def mlp_distance(h: Tensor, weights: list[Tensor], biases: list[Tensor], fast: bool = True) -> Tensor:
+    """``out_0`` [N] alone (queries that need neither feature nor normal: pruning, grids, meshes). Without gradient
+    on CPU each hidden layer is a product without bias and one in-place kernel pass (bias and softplus)."""
+    mod = kernel_for(h) if fast and not torch.is_grad_enabled() else None
+    for w, b in zip(weights[:-1], biases[:-1], strict=True):
+        if mod is None:
+            h = softplus(F.linear(h, w, b), BETA, fast)
+        else:
+            h = mod.softplus_bias_slope(torch.mm(h, w.t()), b, BETA, None, False)[0]
+    return torch.addmv(biases[-1][0].expand(h.shape[0]), h, weights[-1][0])
 
 
 def mlp_with_input_grad(h: Tensor, weights: list[Tensor], biases: list[Tensor], fast: bool = True

@@ -736,7 +736,7 @@ std::vector<torch::Tensor> softplus_slope(torch::Tensor z, double beta, bool wan
 torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tensor> da,
                                       std::optional<torch::Tensor> ds, double beta);
 std::vector<torch::Tensor> softplus_bias_slope(torch::Tensor z, torch::Tensor b, double beta,
-                                               std::optional<torch::Tensor> w);
+                                               std::optional<torch::Tensor> w, bool want_slope);
 std::vector<torch::Tensor> softplus_layer_backward(torch::Tensor s, double beta, std::optional<torch::Tensor> da,
                                                    std::optional<torch::Tensor> d_out,
                                                    std::optional<torch::Tensor> w,
@@ -788,7 +788,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("da"), py::arg("ds"), py::arg("beta"), nogil);
   m.def("softplus_bias_slope", &softplus_bias_slope,
         "(a, s, gs): a = softplus_beta(z + b) written over z, s = sigmoid(beta (z + b)), gs = s * w if w is given",
-        py::arg("z"), py::arg("b"), py::arg("beta"), py::arg("w"), nogil);
+        py::arg("z"), py::arg("b"), py::arg("beta"), py::arg("w"), py::arg("want_slope") = true, nogil);
   m.def("softplus_layer_backward", &softplus_layer_backward,
         "(dz, db, dw): dz = (da + d_out w^T) s + d_gs G beta s (1 - s), G = g or w; db, dw column sums",
         py::arg("s"), py::arg("beta"), py::arg("da"), py::arg("d_out"), py::arg("w"), py::arg("d_gs"),

@@ -96,7 +96,8 @@ torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tens
 //
 // Forward, after z = h W^T (no bias: the product writes z once instead of copying the bias in first):
 //   a = softplus_beta(z + b) (written over z), s = sigmoid(beta (z + b)), and with w given gs = s * w (each row
-//   times w: the top layer's first factor of the input gradient, g = ((w * s_K) W_K * s_{K-1}) ... W_1).
+//   times w: the top layer's first factor of the input gradient, g = ((w * s_K) W_K * s_{K-1}) ... W_1);
+//   without want_slope a alone (queries of a fixed field: pruning, occupancy grids, meshes).
 // Backward of that layer, with G = g (the gradient entering the layer's slope product gs = g * s) or the row w
 // broadcast (top layer):
 //   dz = (da + d_out w^T) * s + (d_gs * G) * beta s (1 - s),   db = sum_rows dz,   dw = sum_rows d_gs * s (top)
@@ -120,8 +121,8 @@ torch::Tensor checked_1d(const torch::Tensor& t, int64_t n, const char* what) {
   return c;
 }
 
-// Rows of z [n / H, H] in place: z <- softplus(z + b), s = its slope, gs = s * w (kGs).
-template <bool kGs>
+// Rows of z [n / H, H] in place: z <- softplus(z + b), s = its slope (kSlope), gs = s * w (kGs).
+template <bool kSlope, bool kGs>
 void bias_softplus_rows(float* __restrict__ z, float* __restrict__ s, float* __restrict__ gs,
                         const float* __restrict__ b, const float* __restrict__ w, int64_t n, int64_t H, float beta,
                         float inv_beta, float x_max) {
@@ -130,7 +131,7 @@ void bias_softplus_rows(float* __restrict__ z, float* __restrict__ s, float* __r
       float a, sl;
       softplus_slope_at(z[o + j] + b[j], beta, inv_beta, x_max, a, sl);
       z[o + j] = a;
-      s[o + j] = sl;
+      if (kSlope) s[o + j] = sl;
       if (kGs) gs[o + j] = sl * w[j];
     }
   }
@@ -167,29 +168,33 @@ void layer_backward_block(int64_t lo, int64_t hi, int64_t H, float beta, const f
 }  // namespace
 
 std::vector<torch::Tensor> softplus_bias_slope(torch::Tensor z, torch::Tensor b, double beta,
-                                               std::optional<torch::Tensor> w) {
+                                               std::optional<torch::Tensor> w, bool want_slope) {
   TORCH_CHECK(z.device().is_cpu() && z.scalar_type() == torch::kFloat32 && z.dim() == 2 && z.is_contiguous(),
               "z must be a contiguous float32 CPU matrix (it is overwritten)");
   const int64_t N = z.size(0), H = z.size(1);
   const auto bc = checked_1d(b, H, "b");
-  const bool has_w = w.has_value() && w->defined();
-  torch::Tensor wc, gs;
+  const bool has_w = want_slope && w.has_value() && w->defined();
+  torch::Tensor wc, gs, s;
   if (has_w) {
     wc = checked_1d(*w, H, "w");
     gs = torch::empty_like(z);
   }
-  auto s = torch::empty_like(z);
+  if (want_slope) s = torch::empty_like(z);
   const float bt = static_cast<float>(beta), inv_b = 1.0f / bt, x_max = exp_arg_max();
   float* zp = z.data_ptr<float>();
-  float* sp = s.data_ptr<float>();
+  float* sp = want_slope ? s.data_ptr<float>() : nullptr;
   float* gp = has_w ? gs.data_ptr<float>() : nullptr;
   const float* bp = bc.data_ptr<float>();
   const float* wp = has_w ? wc.data_ptr<float>() : nullptr;
   at::parallel_for(0, N, std::max<int64_t>(1, kGrain / std::max<int64_t>(H, 1)), [&](int64_t lo, int64_t hi) {
+    float* zr = zp + lo * H;
+    const int64_t n = (hi - lo) * H;
     if (gp != nullptr)
-      bias_softplus_rows<true>(zp + lo * H, sp + lo * H, gp + lo * H, bp, wp, (hi - lo) * H, H, bt, inv_b, x_max);
+      bias_softplus_rows<true, true>(zr, sp + lo * H, gp + lo * H, bp, wp, n, H, bt, inv_b, x_max);
+    else if (sp != nullptr)
+      bias_softplus_rows<true, false>(zr, sp + lo * H, nullptr, bp, wp, n, H, bt, inv_b, x_max);
     else
-      bias_softplus_rows<false>(zp + lo * H, sp + lo * H, nullptr, bp, wp, (hi - lo) * H, H, bt, inv_b, x_max);
+      bias_softplus_rows<false, false>(zr, nullptr, nullptr, bp, wp, n, H, bt, inv_b, x_max);
   });
   return {z, s, gs};
 }
