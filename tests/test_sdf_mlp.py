@@ -100,3 +100,33 @@ def test_distance_without_gradient_matches_the_reference(kernel) -> None:
     with_grad = sdf_mlp.mlp_distance(h, ws, bs)  # with gradient: PyTorch's operators, differentiable
     assert with_grad.requires_grad
     torch.testing.assert_close(with_grad.detach(), want.detach(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("step", [0, 10_000])  # some levels still off; every level on
+def test_field_on_the_fast_path_matches_the_pure_pytorch_field(kernel, step: int) -> None:
+    """The SDF field with the compiled encoding (its Jacobian), the fused MLP and the first weight cut to the active
+    levels against the pure-PyTorch field (padded features, autograd) with the same parameters: SDF, normal and
+    the parameters' gradients of a loss on both, and the distance query."""
+    from anisdf.config import load_config
+    from anisdf.fields.sdf_field import SDFField
+
+    small = ["geometry.log2_hashmap_size=12"]
+    torch.manual_seed(0)
+    fast = SDFField(load_config("cpu-quick", small).geometry)
+    with torch.no_grad():
+        for p in fast.parameters():
+            p.add_(torch.randn_like(p) * 0.05)  # past the geometric initialisation: every path carries weight
+    ref = SDFField(load_config("cpu-quick", [*small, "geometry.encoding_backend=torch"]).geometry)
+    ref.load_state_dict(fast.state_dict())
+    x = torch.rand(3000, 3, generator=torch.Generator().manual_seed(4)) * 1.6 - 0.8
+    results = []
+    for field in (fast, ref):
+        field.set_step(step)
+        q = field.query(x, create_graph=True)
+        loss = q.sdf.square().sum() + (q.grad.norm(dim=-1) - 1).square().sum() + q.feature().sin().sum()
+        grads = torch.autograd.grad(loss, list(field.parameters()))
+        with torch.no_grad():
+            results.append([q.sdf, q.grad, field.distance(x), *grads])
+    assert fast.branches[1].n_active < fast.branches[1].n_levels or step > 0
+    for a, b in zip(*results, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * max(float(b.abs().max()), 1e-6))

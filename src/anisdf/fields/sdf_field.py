@@ -68,7 +68,19 @@ class SDFBranch(nn.Module):
     def encode(self, x: Tensor) -> Tensor:
         """Hash-grid features of ``x`` in [-1, 1]^3; levels not yet switched on read as zero (and are not looked
         up: early in training a third of the encoding's work)."""
-        return self._pad_levels(self.grid((x + 1.0) * 0.5, self.n_active))
+        return self._pad_levels(self.encode_active(x))
+
+    def encode_active(self, x: Tensor) -> Tensor:
+        """The switched-on levels' features alone ``[N, n_active * F]``: the input of :meth:`weights_active`."""
+        return self.grid((x + 1.0) * 0.5, self.n_active)
+
+    def weights_active(self) -> list[Tensor]:
+        """The layers' weights, the first one's columns cut to x and the switched-on levels: the same products as
+        the full weights on the zero-padded features, without padding them (nor their gradient)."""
+        ws = [lay.weight for lay in self.layers]
+        if self.n_active < self.n_levels:
+            ws[0] = ws[0][:, : 3 + self.n_active * self.features]
+        return ws
 
     def _pad_levels(self, enc: Tensor) -> Tensor:
         """The active levels' features ``[N, n_active * F]`` with zeros for the levels not yet switched on."""
@@ -101,14 +113,15 @@ class SDFBranch(nn.Module):
         with torch.set_grad_enabled(create_graph):
             with_jac = self.grid.encode_with_jacobian(u, self.n_active)
         if with_jac is not None:
-            enc, jac = self._pad_levels(with_jac[0]), with_jac[1]
+            (enc, jac), weights = with_jac, self.weights_active()
         else:
             with torch.enable_grad():
                 xg = x.detach().requires_grad_(True)
                 enc = self.encode(xg)
+            weights = [lay.weight for lay in self.layers]
         with torch.set_grad_enabled(create_graph):
-            out0, hidden, g = mlp(torch.cat([x.detach(), enc], dim=-1), [lay.weight for lay in self.layers],
-                                  [lay.bias for lay in self.layers], self.fast)
+            out0, hidden, g = mlp(torch.cat([x.detach(), enc], dim=-1), weights, [lay.bias for lay in self.layers],
+                                  self.fast)
             if with_jac is not None:
                 # J^T g, times d u / d x of the grid's input clamp((x + 1) / 2) as autograd has it
                 g_enc = jacobian_transpose_product(jac, g[:, 3:3 + jac.shape[1]]) * (((u >= 0.0) & (u <= 1.0)) * 0.5)
@@ -222,7 +235,7 @@ class SDFField(nn.Module):
             xn = self._normalised(x)
             parts = []
             for b in self.branches:
-                parts.append(mlp_distance(torch.cat([xn, b.encode(xn)], dim=-1), [lay.weight for lay in b.layers],
+                parts.append(mlp_distance(torch.cat([xn, b.encode_active(xn)], dim=-1), b.weights_active(),
                                           [lay.bias for lay in b.layers], b.fast))
             return self._fuse(parts) * self.radius
 
