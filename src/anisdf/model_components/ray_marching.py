@@ -64,15 +64,14 @@ def march(origins: Tensor, dirs: Tensor, grid: OccupancyGrid | None, radius: flo
     """
     dev = origins.device
     near, far = sphere_intersect(origins, dirs, radius)
-    mod = kernel
-    if mod is not None:
+    if kernel is not None:
         if generator is not None:  # the reference's draws, chunk by chunk
             u = torch.cat([torch.rand(min(chunk_rays, origins.shape[0] - s), generator=generator,
                                       device=generator.device) for s in range(0, origins.shape[0], chunk_rays)])
         else:
             u = torch.full((origins.shape[0],), 0.5)
         occ = None if grid is None else grid.occupied
-        ray_idx, t = mod.march_rays(origins, dirs, near, far, u.to(dev), step, max_samples, occ,
+        ray_idx, t = kernel.march_rays(origins, dirs, near, far, u.to(dev), step, max_samples, occ,
                                     0.0 if grid is None else grid.radius, 0.0 if grid is None else 1.0 / grid.cell_size,
                                     0 if grid is None else grid.resolution)
         return Samples(ray_idx, t, torch.full_like(t, step), origins.shape[0])
