@@ -77,6 +77,8 @@ def render(c2w: np.ndarray, size: int, focal: float, ss: int = 2) -> tuple[np.nd
     spec = ((nrm * half).sum(-1).clamp_min(0) ** 60)[:, None]
     rgb = (albedo(x) * (0.25 + 0.75 * diffuse) + 0.5 * spec).clamp(0, 1)
     a = hit.float()[:, None]
+    # a miss marches to infinity (NaN colour and normal): zero, so that the coverage average below is the hits' mean
+    rgb, nrm = torch.where(hit[:, None], rgb, 0.0), torch.where(hit[:, None], nrm, 0.0)
     rgba = torch.cat([rgb * a, a], -1).reshape(size, ss, size, ss, 4).mean(dim=(1, 3))
     rgba[..., :3] = rgba[..., :3] / rgba[..., 3:].clamp_min(1e-6)
     nmap = torch.cat([(nrm + 1) / 2 * a, a], -1).reshape(size, ss, size, ss, 4).mean(dim=(1, 3))
