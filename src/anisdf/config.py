@@ -41,14 +41,14 @@ class DataConfig:
     """Lower ``downscale`` (not below 1) so that the images' longer side keeps at least this many pixels; 0: off."""
     background: Literal["auto", "white", "black", "random"] = "auto"
     """Training background for RGBA images: auto | white | black | random."""
+    alpha: Literal["auto", "straight", "premultiplied"] = "auto"
+    """RGBA colour: straight, premultiplied in linear light (path tracers; read as straight), auto: told apart."""
     max_images: int = 0
     """Use at most this many training images (0 = all)."""
     train_split: Literal["train", "all"] = "train"
-    """train: the dataset's train split; all: every view, test views included (DTU, a geometry benchmark on which
-    NeuS and the paper train on all 49 views)."""
+    """train: the dataset's train split; all: every view, test views included (DTU: NeuS and the paper use all 49)."""
     images_dir: str = ""
-    """LLFF / COLMAP / NeuS: read images from this sub-folder instead of the default (e.g. ``images_4`` for the
-    Mip-NeRF 360 outdoor scenes, ``images_2`` for the indoor ones); intrinsics follow the size on disk."""
+    """LLFF / COLMAP / NeuS: images from this sub-folder (Mip-NeRF 360: ``images_4`` outdoor, ``images_2`` indoor)."""
     roi_center: tuple[float, ...] = ()
     """Centre x,y,z of the region of interest (the sphere the scene is normalised to) in the dataset's own frame and
     units, overriding the automatic one (``anisdf inspect`` prints it); empty: found automatically."""

@@ -56,7 +56,7 @@ def _scene(data: Path | None, preset: str):
         data = Path(tempfile.mkdtemp(prefix="anisdf-bench-"))
         make_synthetic_scene(data, n_train=40, n_test=8, size=128)
         return load_scene(data)
-    return load_scene(data, downscale=d.downscale, min_size=d.min_size)
+    return load_scene(data, downscale=d.downscale, min_size=d.min_size, alpha=d.alpha)
 
 
 def bench_train_step(scene, backend: str, steps: int = 20, warmup: int = 20, device: torch.device | None = None,
@@ -81,7 +81,7 @@ def step_timing_inputs(data: Path, preset: str, run: Path | None,
     from anisdf.training.checkpoint import load_checkpoint
 
     cfg = load_config(preset, ["train.val_every=0", "train.ckpt_every=0", "train.max_minutes=0", *overrides])
-    scene = load_scene(data, downscale=cfg.data.downscale, min_size=cfg.data.min_size)
+    scene = load_scene(data, downscale=cfg.data.downscale, min_size=cfg.data.min_size, alpha=cfg.data.alpha)
     return cfg, scene, (load_checkpoint(run / "checkpoints" / "last.pt") if run is not None else None)
 
 

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image, UnidentifiedImageError
 
+from anisdf.data.alpha import unpremultiply
 from anisdf.errors import DataError
 
 T = TypeVar("T")
@@ -62,9 +63,11 @@ def _resize(im: Image.Image, size: tuple[int, int]) -> Image.Image:
     return im.resize(size, Image.Resampling.BOX if shrink else Image.Resampling.BICUBIC)
 
 
-def read_rgb(path: Path, downscale: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
+def read_rgb(path: Path, downscale: float = 1.0, premultiplied: bool = False
+             ) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
     """Decode an image: uint8 RGB ``[H',W',3]``, uint8 alpha ``[H',W']`` (None without alpha), and the
-    size ``(W, H)`` on disk."""
+    size ``(W, H)`` on disk. ``premultiplied``: an RGBA image's colour is premultiplied in linear light and is
+    returned straight (:func:`anisdf.data.alpha.unpremultiply`, before any resize)."""
     with _open(path) as im:
         native = im.size
         im2 = _to_8bit(im)
@@ -74,6 +77,10 @@ def read_rgb(path: Path, downscale: float = 1.0) -> tuple[np.ndarray, np.ndarray
             im2 = im2.convert("RGBA")
         if im2.mode not in ("RGB", "RGBA"):
             im2 = im2.convert("RGB")
+        if premultiplied and im2.mode == "RGBA":
+            rgba = np.array(im2)
+            rgba[..., :3] = unpremultiply(rgba[..., :3], rgba[..., 3])
+            im2 = Image.fromarray(rgba, "RGBA")
         im2 = _resize(im2, target_size(*native, downscale))
         arr = np.asarray(im2)
     if arr.shape[-1] == 4:

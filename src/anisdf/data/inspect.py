@@ -27,7 +27,7 @@ def data_options(overrides: list[str] | None) -> dict[str, Any]:
                           f"{other[0]!r}")
     d = load_config(None, items).data
     return {"downscale": d.downscale, "max_images": d.max_images, "images_dir": d.images_dir,
-            "roi_center": d.roi_center, "roi_radius": d.roi_radius, "min_size": d.min_size}
+            "roi_center": d.roi_center, "roi_radius": d.roi_radius, "min_size": d.min_size, "alpha": d.alpha}
 
 
 def inspect_dataset(path: str | Path, overrides: list[str] | None = None, picture: str | Path | None = None
@@ -73,6 +73,7 @@ def inspect_dataset(path: str | Path, overrides: list[str] | None = None, pictur
         "height": scene.height,
         "background": scene.background,
         "has_alpha": scene.alpha is not None,
+        "alpha_mode": scene.alpha_mode,
         "has_masks": scene.masks is not None,
         "has_normals": bool(scene.normals),
         "n_normals": len(scene.normals),

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from anisdf.data.alpha import ALPHA_MODES, detect
 from anisdf.data.cameras import Cameras
 from anisdf.data.dataparsers._common import ParsedScene, image_size
 from anisdf.data.images import (
@@ -31,6 +32,19 @@ from anisdf.data.scene import Scene
 from anisdf.errors import AnisdfError, DataError
 
 MIN_ROI_VIEWS = 8
+ALPHA_SAMPLE_IMAGES = 8  # images whose partly covered pixels tell straight from premultiplied colour
+
+
+def alpha_convention(paths: list[Path], requested: str) -> tuple[str, str]:
+    """How the RGBA images at ``paths`` hold colour (``data.alpha``: auto | straight | premultiplied) and why: ``auto``
+    looks at the first images that have alpha (:func:`anisdf.data.alpha.detect`). ``("straight", "")`` without
+    alpha."""
+    if requested not in ALPHA_MODES:
+        raise AnisdfError(f"data.alpha must be one of {', '.join(ALPHA_MODES)}, got {requested!r}")
+    if requested != "auto":
+        return requested, f"data.alpha={requested}"
+    samples = [(rgb, a) for rgb, a, _ in (read_rgb(p) for p in paths[:ALPHA_SAMPLE_IMAGES]) if a is not None]
+    return detect(samples) if samples else ("straight", "")
 
 
 def select_images(parsed: ParsedScene, max_images: int) -> list[int]:
@@ -52,7 +66,8 @@ def _check_size(paths: list[Path], sizes: list[tuple[int, int]], ref: tuple[int,
 
 
 def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0,
-                roi_center: tuple[float, ...] = (), roi_radius: float = 0.0, min_size: int = 0) -> Scene:
+                roi_center: tuple[float, ...] = (), roi_radius: float = 0.0, min_size: int = 0,
+                alpha_mode: str = "auto") -> Scene:
     """Decode and normalise a parsed dataset (see :func:`anisdf.data.load_scene`)."""
     if not (math.isfinite(downscale) and downscale > 0):
         raise AnisdfError(f"downscale must be a positive number, got {downscale}")
@@ -64,7 +79,8 @@ def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0
     if min_size > 0 and downscale > 1.0:
         downscale = capped_downscale(*image_size(paths[0]), downscale, min_size)
 
-    decoded = parallel_map(lambda p: read_rgb(p, downscale), paths)
+    convention, evidence = alpha_convention(paths, alpha_mode)
+    decoded = parallel_map(lambda p: read_rgb(p, downscale, convention == "premultiplied"), paths)
     native = decoded[0][2]
     _check_size(paths, [d[2] for d in decoded], native, paths[0], "image")
     images = torch.from_numpy(np.stack([d[0] for d in decoded]))
@@ -150,6 +166,7 @@ def build_scene(parsed: ParsedScene, downscale: float = 1.0, max_images: int = 0
         downscale=downscale,
         warnings=warnings,
         roi_method=roi.method,
+        alpha_mode=f"{convention} ({evidence})" if alpha is not None else "",
     )
 
 

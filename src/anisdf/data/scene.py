@@ -55,6 +55,9 @@ class Scene:
     roi_method: str = ""
     """How the region of interest was found: scale_mat | sparse-points (process-data) | visual-hull | camera-axes |
     forward-facing."""
+    alpha_mode: str = ""
+    """How the RGBA images held colour, with the evidence: ``straight (...)``, or ``premultiplied (...)`` (turned
+    straight on loading; :mod:`anisdf.data.alpha`); empty without alpha."""
     downscale: float = 1.0
     """The factor the images were divided by (``data.downscale``, lowered by ``data.min_size``)."""
 

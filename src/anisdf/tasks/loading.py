@@ -50,7 +50,8 @@ def scene_for_run(run: Path, cfg, ck: dict[str, Any], downscale: float | None = 
 
     scene = load_scene(RunDir(run).data_path(ck), downscale=cfg.data.downscale if downscale is None else downscale,
                        max_images=cfg.data.max_images if split in (None, "train") else 0,
-                       images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]))
+                       images_dir=cfg.data.images_dir, split=split, to_world=np.asarray(ck["to_world"]),
+                       alpha=cfg.data.alpha)
     refined = RunDir(run).read_refined_cameras()
     if refined is not None:  # training cameras as refined (cameras.refine); test cameras have no correction
         n = apply_refined_cameras(scene, refined, np.asarray(ck["to_world"]))

@@ -208,7 +208,7 @@ def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: 
     try:
         scene = load_scene(data, downscale=cfg.data.downscale, max_images=cfg.data.max_images,
                            images_dir=cfg.data.images_dir, roi_center=cfg.data.roi_center,
-                           roi_radius=cfg.data.roi_radius, min_size=cfg.data.min_size)
+                           roi_radius=cfg.data.roi_radius, min_size=cfg.data.min_size, alpha=cfg.data.alpha)
         if scene.downscale != cfg.data.downscale and (ctx is None or ctx.is_main):
             log.info("images at %dx%d: downscale %g instead of %g (data.min_size=%d)", scene.width, scene.height,
                      scene.downscale, cfg.data.downscale, cfg.data.min_size)
@@ -216,6 +216,8 @@ def train(data: Path, out: Path, options: TrainOptions | None = None, *, setup: 
         if ctx is None or ctx.is_main:
             for w in scene.warnings:
                 log.warning("warning: %s", w)
+            if scene.alpha_mode.startswith("premultiplied"):
+                log.info("RGBA colour premultiplied in linear light, read as straight colour: %s", scene.alpha_mode)
             _say_budget(cfg, o)
         trainer = Trainer(cfg, scene, out, dev, progress=o.progress, dist=ctx)
         if ck is not None:

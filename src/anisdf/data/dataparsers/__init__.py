@@ -62,7 +62,7 @@ def parse_dataset(path: str | Path) -> ParsedScene:
 
 def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, images_dir: str = "",
                split: str | None = None, to_world: np.ndarray | None = None, roi_center: tuple[float, ...] = (),
-               roi_radius: float = 0.0, min_size: int = 0) -> Scene:
+               roi_radius: float = 0.0, min_size: int = 0, alpha: str = "auto") -> Scene:
     """Load the dataset in folder ``path`` (format auto-detected) as a normalised :class:`Scene`.
 
     ``downscale`` divides the image size (antialiased resize; intrinsics scaled to match);
@@ -74,7 +74,9 @@ def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, im
     and ``roi_radius`` (> 0) replace the automatic region of interest's centre and radius (the dataset's frame and
     units; ``data.roi_center`` / ``data.roi_radius``); a sphere that holds a camera or that no camera sees is an
     error. ``min_size`` > 0 lowers ``downscale`` so that the images' longer side keeps at least that many pixels
-    (``data.min_size``; :attr:`Scene.downscale` is the factor applied).
+    (``data.min_size``; :attr:`Scene.downscale` is the factor applied). ``alpha``: how RGBA images hold colour,
+    ``auto`` (told from the images), ``straight`` or ``premultiplied`` (in linear light; read as straight colour;
+    ``data.alpha``, :mod:`anisdf.data.alpha`).
     """
     parsed = parse_dataset(path)
     if images_dir:
@@ -87,7 +89,7 @@ def load_scene(path: str | Path, downscale: float = 1.0, max_images: int = 0, im
             raise ValueError("load_scene: split needs to_world (the normalisation cannot be found from one split)")
         parsed = _only_split(parsed, split)
     return build_scene(parsed, downscale=downscale, max_images=max_images, roi_center=tuple(roi_center),
-                       roi_radius=float(roi_radius), min_size=min_size)
+                       roi_radius=float(roi_radius), min_size=min_size, alpha_mode=alpha)
 
 
 def _only_split(parsed: ParsedScene, split: str) -> ParsedScene:

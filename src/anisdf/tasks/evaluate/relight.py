@@ -79,11 +79,21 @@ def material_errors(run: Path, truth: dict[str, Any]) -> dict[str, float]:
             "metallic": round(float((metal * w).sum()), 4), "truth": truth}
 
 
+def _rgba(path: Path, premultiplied: bool) -> np.ndarray:
+    """A ground-truth image as float RGBA in [0, 1] with straight colour (:func:`anisdf.data.images.read_rgb`)."""
+    from anisdf.data.images import read_rgb
+
+    rgb, a, _ = read_rgb(path, premultiplied=premultiplied)
+    a = np.full(rgb.shape[:2], 255, np.uint8) if a is None else a
+    return np.concatenate([rgb, a[..., None]], -1).astype(np.float32) / 255.0
+
+
 def relight_scores(run: Path, folder: Path, progress: bool = True) -> tuple[dict[str, Any], dict[str, Any]]:
     """``{"<light>": {"psnr", "ssim", "views"}, ..., "material": {...}}`` (the last where the truth is known) and
     the protocol entry."""
     from PIL import Image
 
+    from anisdf.data.loader import alpha_convention
     from anisdf.eval.metrics import composite_on_white, psnr, ssim
     from anisdf.tasks.relight import relight
 
@@ -93,8 +103,11 @@ def relight_scores(run: Path, folder: Path, progress: bool = True) -> tuple[dict
     rd = RunDir(run)
     cameras = folder / "transforms_test.json"
     scores: dict[str, Any] = {}
+    colour: dict[str, str] = {}
     for light, env in lights_in(folder).items():
         views = sorted((folder / light).glob("*.png"))
+        convention, evidence = alpha_convention(views, "auto")  # as the training images are read (data.alpha)
+        colour[light] = f"{convention} ({evidence})" if evidence else "no alpha"
         size = Image.open(views[0]).size[0]
         out = rd.relight(light)
         info = relight(run, out, env=env, cameras=cameras if cameras.is_file() else None, size=size,
@@ -104,7 +117,7 @@ def relight_scores(run: Path, folder: Path, progress: bool = True) -> tuple[dict
             gt_path = folder / light / f"{name}.png"
             if not gt_path.is_file():
                 continue
-            gt = composite_on_white(np.asarray(Image.open(gt_path).convert("RGBA"), np.float32) / 255.0)
+            gt = composite_on_white(_rgba(gt_path, convention == "premultiplied"))
             pred = composite_on_white(np.asarray(Image.open(out / f"{name}.png"), np.float32) / 255.0)
             rows.append((psnr(pred, gt), ssim(pred, gt)))
         if not rows:
@@ -115,6 +128,7 @@ def relight_scores(run: Path, folder: Path, progress: bool = True) -> tuple[dict
     if truth is not None:
         scores["material"] = material_errors(run, truth)
     protocol = {"folder": str(folder.resolve()), "background": "white", "renders": str(rd.root / "relight"),
+                "ground_truth_colour": colour,
                 "cameras": str(cameras) if cameras.is_file() else "the run's test views",
                 "renderer": "split-sum reference renderer (anisdf relight), 2 x 2 samples a pixel, Gaussian filter "
                             "0.6 px; no shadows or interreflections"}
