@@ -8,11 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from PIL import Image
 
 from anisdf.data.alpha import ALPHA_MODES, detect
 from anisdf.data.cameras import Cameras
 from anisdf.data.dataparsers._common import ParsedScene, image_size
 from anisdf.data.images import (
+    DECODE_ERRORS,
     capped_downscale,
     parallel_map,
     read_mask,
@@ -35,6 +37,16 @@ MIN_ROI_VIEWS = 8
 ALPHA_SAMPLE_IMAGES = 8  # images whose partly covered pixels tell straight from premultiplied colour
 
 
+def _may_have_alpha(path: Path) -> bool:
+    """Whether the image's header allows an alpha channel (read without decoding the pixels); True when the header
+    cannot be read, so that decoding names the file and the problem."""
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info
+    except DECODE_ERRORS:
+        return True
+
+
 def alpha_convention(paths: list[Path], requested: str) -> tuple[str, str]:
     """How the RGBA images at ``paths`` hold colour (``data.alpha``: auto | straight | premultiplied) and why: ``auto``
     looks at the first images that have alpha (:func:`anisdf.data.alpha.detect`). ``("straight", "")`` without
@@ -43,7 +55,8 @@ def alpha_convention(paths: list[Path], requested: str) -> tuple[str, str]:
         raise AnisdfError(f"data.alpha must be one of {', '.join(ALPHA_MODES)}, got {requested!r}")
     if requested != "auto":
         return requested, f"data.alpha={requested}"
-    samples = [(rgb, a) for rgb, a, _ in (read_rgb(p) for p in paths[:ALPHA_SAMPLE_IMAGES]) if a is not None]
+    with_alpha = [p for p in paths[:ALPHA_SAMPLE_IMAGES] if _may_have_alpha(p)]  # photos: no decode here
+    samples = [(rgb, a) for rgb, a, _ in (read_rgb(p) for p in with_alpha) if a is not None]
     return detect(samples) if samples else ("straight", "")
 
 
