@@ -551,6 +551,54 @@ def test_refining_every_fourth_update_keeps_the_same_march_grid_for_fewer_querie
     assert sum(queries[4]) < 0.8 * sum(queries[1])
 
 
+def test_march_grid_over_the_query_budget_is_refined_in_turns_not_copied():
+    """refine_march_grid: before the first refinement an over-budget grid is copied at the finer resolution; after it,
+    an update whose full refinement would cost more than the budget refines the cells that filled and a rotating
+    share of the occupied ones (a quarter of the budget's queries with ``every`` 4), never the copy, whose samples
+    reach the band refined rays no longer train; the shares add up to the full refinement."""
+    from anisdf.model_components.occupancy_grid import refine_march_grid
+
+    def sdf(x: torch.Tensor) -> torch.Tensor:
+        return x.norm(dim=-1) - 0.5
+
+    queries: list[int] = []
+
+    def counted(x: torch.Tensor) -> torch.Tensor:
+        queries.append(x.shape[0])
+        return sdf(x)
+
+    inv_s, gen = 300.0, torch.Generator().manual_seed(0)
+    grid, fine = OccupancyGrid(32, 1.0, band=6.0), OccupancyGrid(64, 1.0, band=6.0)
+    before = grid.occupied.clone()
+    grid.update(sdf, inv_s, gen, full=True)
+    refine_march_grid(grid, fine, before, sdf, inv_s, every=4, budget=1)  # never refined: the copy
+    assert torch.equal(fine.occupied, grid.upsampled(2)) and int(fine.n_updates) == 0
+    # refined within the budget, with a softer surface (a wider band): the children of a sharper one are fewer
+    refine_march_grid(grid, fine, grid.occupied.clone(), sdf, 30.0, every=4, budget=10**9)
+    assert int(fine.n_updates) == 1
+    want = grid.refined(sdf, inv_s, 2).occupied
+    assert (fine.occupied & ~want).any()
+    # the same grid over a budget whose quarter is 1/4.5 of a full refinement: five turns, then the full refinement
+    budget = int(grid.occupied.sum()) * 8 * 8 // 9
+    for turn in range(5):
+        assert not torch.equal(fine.occupied, want), turn
+        grid.n_updates += 1
+        queries.clear()
+        refine_march_grid(grid, fine, grid.occupied.clone(), counted, inv_s, every=4, budget=budget)
+        assert 0 < sum(queries) <= 1.1 * budget / 4
+    assert torch.equal(fine.occupied, want) and int(fine.n_updates) == 1
+    # updates that move cells in and out (random points in each cell): never the copy, only children of occupied cells
+    for _ in range(6):
+        before = grid.occupied.clone()
+        grid.update(sdf, inv_s, gen)
+        budget = int(grid.occupied.sum()) * 8 // 2
+        queries.clear()
+        refine_march_grid(grid, fine, before, counted, inv_s, every=4, budget=budget)
+        assert sum(queries) <= 1.1 * budget / 4 + 8 * int((grid.occupied & ~before).sum())
+        assert not (fine.occupied & ~grid.upsampled(2)).any()
+        assert fine.occupied.sum() < 0.8 * grid.upsampled(2).sum()
+
+
 @pytest.mark.parametrize("segment", [1, 3, 8, 1000])
 def test_early_ray_termination_keeps_the_samples_of_the_one_pass_pruning(segment):
     """prune_occluded_progressive queries the SDF a few samples a ray at a time and stops a ray once it is opaque:

@@ -148,9 +148,9 @@ class RendererConfig:
     """Bounding sphere of the object in normalised coordinates."""
     grid_resolution: int = 128
     grid_refine: int = 1
-    """Training rays march the occupancy grid refined by this factor (occupancy_grid.refined: occupied cells split,
-    children that cannot reach the density band dropped; 1: the grid itself), once it has at most 400k / factor^3
-    occupied cells (``models/anisdf.GRID_REFINE_BUDGET``), where a refined cell spans at least two march steps."""
+    """Training rays march the occupancy grid refined by this factor (occupancy_grid.refine_march_grid: occupied cells
+    split, children that cannot reach the density band dropped; 1: the grid itself) where a refined cell spans at
+    least two march steps; over 400k queries (``models/anisdf.GRID_REFINE_BUDGET``) refined a share at a time."""
     grid_refine_every: int = 4
     """Grid updates between full refinements (``grid_refine``); in between only emptied and filled cells change."""
     grid_update_every: int = 16

@@ -7,7 +7,8 @@ logistic density is below that fraction of its peak. Each update re-evaluates a 
 cells that are currently occupied (every cell during warm-up), so an update costs a fraction of a full sweep.
 
 :meth:`OccupancyGrid.refined` splits the occupied cells of a fixed model's grid into finer ones, for rendering
-images: the band of samples around the surface shrinks with the cell, so a ray costs fewer SDF queries.
+images: the band of samples around the surface shrinks with the cell, so a ray costs fewer SDF queries;
+:func:`refine_march_grid` keeps such a finer grid for training rays (``renderer.grid_refine``) within a query budget.
 """
 
 from __future__ import annotations
@@ -125,6 +126,46 @@ class OccupancyGrid(nn.Module):
             occ[idx] = sdf_fn(centres) <= thresh
         fine.occupied.copy_(occ)
         return fine
+
+
+@torch.no_grad()
+def refine_march_grid(grid: OccupancyGrid, fine: OccupancyGrid, before: Tensor, sdf_fn: Callable[[Tensor], Tensor],
+                      inv_s: float, every: int, budget: int) -> None:
+    """The grid training rays march (``renderer.grid_refine``), after an update of ``grid`` (``before``: its occupancy
+    before): ``grid`` refined (:meth:`OccupancyGrid.refined`) every ``every`` updates; between them the children of
+    cells that emptied are dropped and only cells that filled are refined. While refining every occupied cell would
+    cost more than ``budget`` queries: before the first refinement the plain copy at the finer resolution (early
+    training, a mostly occupied grid); after it a rotating share of the occupied cells is refined at each update
+    (:func:`_refine_share`), never the copy: its samples reach the band around the surface that refined rays no
+    longer train, and a quiet 10-minute cpu-quick run that crossed the budget saw its eikonal term jump from 0.003 to
+    0.48 and its outline erode (benchmarks/RESULTS.md). ``fine.n_updates``: ``grid``'s update count at the last full
+    refinement (0: a copy)."""
+    f, since = fine.resolution // grid.resolution, int(grid.n_updates - fine.n_updates)
+    filled = grid.occupied & ~before
+    if int(grid.occupied.sum()) * f**3 > budget:
+        if int(fine.n_updates) == 0:
+            fine.occupied.copy_(grid.upsampled(f))
+        else:
+            _refine_share(grid, fine, filled, sdf_fn, inv_s, f, budget // max(every, 1))
+    elif 0 < int(fine.n_updates) and since < every:
+        fresh = grid.refined(sdf_fn, inv_s, f, occupied=filled).occupied
+        fine.occupied.logical_and_(grid.upsampled(f)).logical_or_(fresh)
+    else:
+        fine.occupied.copy_(grid.refined(sdf_fn, inv_s, f).occupied)
+        fine.n_updates.copy_(grid.n_updates)
+
+
+def _refine_share(grid: OccupancyGrid, fine: OccupancyGrid, filled: Tensor, sdf_fn: Callable[[Tensor], Tensor],
+                  inv_s: float, f: int, per_update: int) -> None:
+    """The cells that filled and one of ``k`` shares of the occupied cells (index modulo ``k``, turning with the
+    update count: a resume refines the same) refined afresh, ``k`` such that a share costs ``per_update`` queries (a
+    full refinement's cost spread over the updates between two); the other cells keep their children, the children
+    of emptied cells are dropped."""
+    occ = grid.occupied
+    k = -(-int(occ.sum()) * f**3 // max(per_update, 1))
+    redo = (occ & (torch.arange(occ.numel(), device=occ.device) % k == int(grid.n_updates) % k)) | filled
+    fresh = grid.refined(sdf_fn, inv_s, f, occupied=redo).occupied
+    fine.occupied.logical_and_(grid.upsampled(f, occ & ~redo)).logical_or_(fresh)
 
 
 def march_grid_state(state: dict, prefix: str, grid: OccupancyGrid, march_grid: OccupancyGrid | None) -> None:

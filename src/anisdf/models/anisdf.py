@@ -29,7 +29,7 @@ from anisdf.model_components.neus_renderer import (
     prune_hidden,
     prune_occluded,
 )
-from anisdf.model_components.occupancy_grid import OccupancyGrid, march_grid_state
+from anisdf.model_components.occupancy_grid import OccupancyGrid, march_grid_state, refine_march_grid
 from anisdf.model_components.ray_marching import march
 from anisdf.models.per_image import TRANSFORM_DIMS, CameraRefinement, ImageCodes, colour_transform
 
@@ -82,8 +82,8 @@ class GridBroadcaster(Protocol):
 REFINE_BUDGET = 4_000_000
 """Most SDF queries :meth:`AniSDFModel.image_grid` spends on refining (a trained cpu-quick bunny: about 2M)."""
 GRID_REFINE_BUDGET = 400_000
-"""Most SDF queries a grid update spends on refining the training grid (``renderer.grid_refine``; a cpu-quick bunny
-late in training: 32k occupied cells of 64^3, 256k children); above it the refined grid copies the grid."""
+"""Most SDF queries a full refinement of the training grid spends (``renderer.grid_refine``; a cpu-quick bunny late in
+training: 32-52k occupied cells of 64^3, 256-420k children): above it, occupancy_grid.refine_march_grid."""
 
 
 class AniSDFModel(nn.Module):
@@ -187,8 +187,9 @@ class AniSDFModel(nn.Module):
         if job is None or job.is_main:
             before = self.grid.occupied.clone() if self.march_grid is not None else None
             self.grid.update(self.geometry.distance, float(self.variance()), generator, full=full)
-            if self.march_grid is not None:
-                self._refine_march_grid(self.march_grid, before)
+            if self.march_grid is not None and before is not None:
+                refine_march_grid(self.grid, self.march_grid, before, self.geometry.distance, float(self.variance()),
+                                  self.cfg.renderer.grid_refine_every, GRID_REFINE_BUDGET)
             if bg is not None:
                 bg.update_grid(generator, full=full)
         if job is not None:
@@ -197,25 +198,6 @@ class AniSDFModel(nn.Module):
                 job.broadcast_module(self.march_grid)
             if bg is not None:
                 job.broadcast_tensors([bg.density_ema, bg.occupied])
-
-    @torch.no_grad()
-    def _refine_march_grid(self, fine: OccupancyGrid, before: Tensor) -> None:
-        """``renderer.grid_refine``: ``fine`` becomes the grid refined (:meth:`OccupancyGrid.refined`) every
-        ``renderer.grid_refine_every`` updates; between them, the children of cells that emptied are dropped and only
-        cells that filled (``before``: the occupancy before this update) are refined. While refining would cost more
-        than ``GRID_REFINE_BUDGET`` queries, the plain copy at the finer resolution. ``fine.n_updates``: the grid's
-        update count at the last refinement (0: a copy)."""
-        f, since = fine.resolution // self.grid.resolution, int(self.grid.n_updates - fine.n_updates)
-        if int(self.grid.occupied.sum()) * f**3 > GRID_REFINE_BUDGET:
-            fine.occupied.copy_(self.grid.upsampled(f))
-            fine.n_updates.zero_()
-        elif 0 < int(fine.n_updates) and since < self.cfg.renderer.grid_refine_every:
-            filled = self.grid.occupied & ~before
-            fresh = self.grid.refined(self.geometry.distance, float(self.variance()), f, occupied=filled).occupied
-            fine.occupied.logical_and_(self.grid.upsampled(f)).logical_or_(fresh)
-        else:
-            fine.occupied.copy_(self.grid.refined(self.geometry.distance, float(self.variance()), f).occupied)
-            fine.n_updates.copy_(self.grid.n_updates)
 
     @contextlib.contextmanager
     def cached_weights(self) -> Iterator[None]:
