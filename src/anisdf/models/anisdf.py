@@ -185,9 +185,9 @@ class AniSDFModel(nn.Module):
         bg = self.background if isinstance(self.background, BackgroundNeRF) and self.background.grid_resolution \
             else None
         if job is None or job.is_main:
-            before = self.grid.occupied.clone() if self.march_grid is not None else None
+            before = self.grid.occupied.clone()
             self.grid.update(self.geometry.distance, float(self.variance()), generator, full=full)
-            if self.march_grid is not None and before is not None:
+            if self.march_grid is not None:
                 refine_march_grid(self.grid, self.march_grid, before, self.geometry.distance, float(self.variance()),
                                   self.cfg.renderer.grid_refine_every, GRID_REFINE_BUDGET)
             if bg is not None:
