@@ -148,8 +148,7 @@ def refine_march_grid(grid: OccupancyGrid, fine: OccupancyGrid, before: Tensor, 
         else:
             _refine_share(grid, fine, filled, sdf_fn, inv_s, f, budget // max(every, 1))
     elif 0 < int(fine.n_updates) and since < every:
-        fresh = grid.refined(sdf_fn, inv_s, f, occupied=filled).occupied
-        fine.occupied.logical_and_(grid.upsampled(f)).logical_or_(fresh)
+        _refine_cells(grid, fine, filled, sdf_fn, inv_s, f)
     else:
         fine.occupied.copy_(grid.refined(sdf_fn, inv_s, f).occupied)
         fine.n_updates.copy_(grid.n_updates)
@@ -158,14 +157,20 @@ def refine_march_grid(grid: OccupancyGrid, fine: OccupancyGrid, before: Tensor, 
 def _refine_share(grid: OccupancyGrid, fine: OccupancyGrid, filled: Tensor, sdf_fn: Callable[[Tensor], Tensor],
                   inv_s: float, f: int, per_update: int) -> None:
     """The cells that filled and one of ``k`` shares of the occupied cells (index modulo ``k``, turning with the
-    update count: a resume refines the same) refined afresh, ``k`` such that a share costs ``per_update`` queries (a
-    full refinement's cost spread over the updates between two); the other cells keep their children, the children
-    of emptied cells are dropped."""
+    update count: a resume refines the same) refined afresh (:func:`_refine_cells`), ``k`` such that a share costs
+    ``per_update`` queries: a full refinement's cost spread over the updates between two."""
     occ = grid.occupied
     k = -(-int(occ.sum()) * f**3 // max(per_update, 1))
-    redo = (occ & (torch.arange(occ.numel(), device=occ.device) % k == int(grid.n_updates) % k)) | filled
+    share = occ & (torch.arange(occ.numel(), device=occ.device) % k == int(grid.n_updates) % k)
+    _refine_cells(grid, fine, share | filled, sdf_fn, inv_s, f)
+
+
+def _refine_cells(grid: OccupancyGrid, fine: OccupancyGrid, redo: Tensor, sdf_fn: Callable[[Tensor], Tensor],
+                  inv_s: float, f: int) -> None:
+    """The children of the cells ``redo`` refined afresh; the other occupied cells keep theirs, the children of empty
+    cells are dropped."""
     fresh = grid.refined(sdf_fn, inv_s, f, occupied=redo).occupied
-    fine.occupied.logical_and_(grid.upsampled(f, occ & ~redo)).logical_or_(fresh)
+    fine.occupied.logical_and_(grid.upsampled(f, grid.occupied & ~redo)).logical_or_(fresh)
 
 
 def march_grid_state(state: dict, prefix: str, grid: OccupancyGrid, march_grid: OccupancyGrid | None) -> None:
