@@ -429,6 +429,25 @@ def test_loss_dict_has_every_term(toy_scene, tmp_path):
         assert key in stats and np.isfinite(stats[key]), key
 
 
+def test_the_interior_prior_trains_and_resumes_exactly(toy_scene, tmp_path, monkeypatch):
+    from anisdf.models import anisdf as model_module
+
+    monkeypatch.setattr(model_module, "INTERIOR_EVERY", 2)  # depths at every 2nd grid update, from the start
+    extra = ["train.max_steps=10", "loss.interior=0.1", "loss.interior_start=0", "renderer.grid_update_every=2"]
+    a = _trainer(toy_scene, tmp_path / "a", extra)
+    a.fit()
+    b = _trainer(toy_scene, tmp_path / "b", extra)
+    b.fit(max_steps=5)
+    c = _trainer(toy_scene, tmp_path / "b", extra)
+    c.load_state_dict(checkpoint.load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt"))
+    c.fit()
+    sa, sc = a.model.state_dict(), c.model.state_dict()
+    assert "interior.depth" in sc and sa.keys() == sc.keys()
+    for k in sa:
+        assert torch.equal(sa[k], sc[k]), k
+    assert float(a.model.interior.depth.max()) > 0 and np.isfinite(a.train_step()["interior"])
+
+
 def test_fast_backend_without_a_kernel_stops_before_training(toy_scene, tmp_path, monkeypatch):
     """encoding_backend=fast where the device has no fast kernel: a clear error before any step or file."""
     monkeypatch.setenv("ANISDF_NO_KERNEL", "1")

@@ -171,13 +171,11 @@ class RendererConfig:
     background_samples: int = 32
     """Samples per ray of the background NeRF, uniform in disparity."""
     background_levels: int = 12
-    """Hash-grid levels of the background NeRF (the release: 16)."""
     background_log2_hashmap_size: int = 17
-    """log2 of the background NeRF's hash table size per level (the release: 22)."""
+    """Hash-grid levels of the background NeRF and log2 of its table size a level (the release: 16 and 22)."""
     background_hidden: int = 64
-    """Width of the background NeRF's density and colour heads."""
     background_layers: int = 1
-    """Hidden layers of each background head (the release: 2)."""
+    """Width and hidden layers of each of the background NeRF's density and colour heads (the release: 2 layers)."""
     background_grid_resolution: int = 0
     """Cells a side of the background NeRF's occupancy grid over the contracted ball (0: none; the release's
     nerfacc grid: 128). With it, the heads run only on samples in cells where density was seen."""
@@ -233,6 +231,11 @@ class LossConfig:
     """Binary cross-entropy of the accumulated opacity with itself (Eq. 17)."""
     mask: float = 0.0
     """BCE between accumulated opacity and the dataset mask (DTU-style), 0 = off."""
+    interior: float = 0.0
+    """Weight of the interior prior (anisdf's; model_components/interior.py): the SDF held below minus half the depth
+    deep inside the object, where no ray reaches, so that no pocket there crosses zero. 0 = off."""
+    interior_start: int = 500
+    """Schedule step from which the interior prior applies; its depths are renewed at every 16th grid update."""
     explode_factor: float = 50.0
     """Stop when the loss exceeds this multiple of its running mean."""
 
@@ -260,14 +263,11 @@ class TrainConfig:
     with its schedule complete however fast the machine is. Without one it is laid on steps (bit-exact resume)."""
     device: str = "auto"
     amp: bool = False
-    """bf16 autocast of the radiance heads (CUDA only; the SDF is always float32). Off by default: the H100 profile
-    found the step bound by kernel launches, not arithmetic (benchmarks/RESULTS.md); the heads' matrices are small
-    and autocast adds about 130 cast kernels a step. The GPU A/B of this switch is still to be run."""
+    """bf16 autocast of the radiance heads (CUDA only; the SDF stays float32). Off: the H100 step was launch-bound,
+    the heads small, and autocast adds ~130 cast kernels a step (benchmarks/RESULTS.md); no GPU A/B yet."""
     compile: bool = False
-    """``torch.compile`` the SDF MLPs (with their closed-form normals), the radiance heads and the NeuS opacity (not
-    the hash grids, which have their own kernels), falling back to eager code with one warning. Meant for CUDA,
-    where it fuses many small kernels of a launch-bound step; compiling costs about half a minute at start. On 2 CPU
-    cores it made no measurable difference."""
+    """``torch.compile`` the SDF MLPs, radiance heads and NeuS opacity (not the hash grids), else eager with a warning.
+    For CUDA's launch-bound step (about half a minute to compile); on 2 CPU cores no measurable difference."""
     samples_per_step: int = 2**18
     """Rays per step follow this sample budget (per rank): the step's ray count is scaled so that the shaded samples
     come to about this many (and the cheap pruning pass's to 4x)."""

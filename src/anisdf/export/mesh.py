@@ -22,6 +22,7 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from anisdf.errors import AnisdfError
+from anisdf.model_components.interior import enclosed_pockets
 from anisdf.utils.atomic import atomic_path
 
 MeshFormat = Literal["ply", "obj", "glb"]
@@ -111,8 +112,6 @@ def _near_blocks(vol1: np.ndarray, lo1: np.ndarray, h1: float, lo: np.ndarray, s
     """[bx, by, bz] bool: the ``block``^3 blocks of the fine grid that may hold the surface, judged from the
     coarse grid ``vol1`` (origin ``lo1``, spacing ``h1``): blocks that overlap a coarse point within 2 coarse
     cells of the zero level or a corner of a sign-changing coarse cell, dilated by one coarse cell."""
-    from scipy import ndimage
-
     near = np.abs(vol1) < 2.0 * h1
     cross = _crossing_cells(vol1)
     for dx, dy, dz in _CORNERS:
@@ -184,15 +183,7 @@ def fill_cavities(vol: np.ndarray) -> np.ndarray:
     count against accuracy (on bunny_plastic, nerf-synthetic preset on an H100: a 130k-face inner shell and
     Chamfer 0.023). Pockets open to the outside, through any hole, are kept. Returns ``vol`` or a copy.
     """
-    outside = vol > 0
-    labels, n = ndimage.label(outside)  # 6-connected, so a pocket is not joined to the outside across an edge
-    if n <= 1:
-        return vol
-    faces = [labels[0], labels[-1], labels[:, 0], labels[:, -1], labels[:, :, 0], labels[:, :, -1]]
-    open_label = np.zeros(n + 1, dtype=bool)
-    open_label[np.unique(np.concatenate([f.ravel() for f in faces]))] = True
-    open_label[0] = False
-    pocket = outside & ~open_label[labels]
+    pocket = enclosed_pockets(vol > 0)  # 6-connected, so a pocket is not joined to the outside across an edge
     if not pocket.any():
         return vol
     out = vol.copy()

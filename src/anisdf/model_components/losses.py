@@ -1,4 +1,5 @@
-"""The five training losses of AniSDF (paper Sec. 3.4, Eqs. 13-17; their weighted sum is Eq. 18)."""
+"""The five training losses of AniSDF (paper Sec. 3.4, Eqs. 13-17; their weighted sum is Eq. 18), the mask term and
+anisdf's interior prior."""
 
 from __future__ import annotations
 
@@ -54,6 +55,11 @@ def alpha_entropy_loss(opacity: Tensor, eps: float = 1e-4) -> Tensor:
 def mask_loss(opacity: Tensor, mask: Tensor, eps: float = 1e-3) -> Tensor:
     """BCE between accumulated opacity and an object mask (NeuS 'w/ mask' setting, DTU)."""
     return F.binary_cross_entropy(opacity.clamp(eps, 1.0 - eps), mask)
+
+
+def interior_loss(sdf: Tensor, bound: Tensor) -> Tensor:
+    """The interior prior (not in the paper; model_components/interior.py): ``E[max(0, sdf(x) - bound(x))]``."""
+    return torch.relu(sdf - bound).mean()
 
 
 def tangent_perturbation(x: Tensor, normal: Tensor, eps: float, generator: torch.Generator | None) -> Tensor:
