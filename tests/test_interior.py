@@ -85,3 +85,17 @@ def test_the_deep_cells_follow_a_loaded_or_broadcast_depth():
     for prior, gen in zip((loaded, sent), g[1:], strict=True):
         x, b = prior.sample(64, gen)
         assert torch.equal(x, x0) and torch.equal(b, b0)
+
+
+def test_a_model_loads_a_checkpoint_saved_with_or_without_the_prior():
+    from anisdf.config import load_config
+    from anisdf.models.anisdf import AniSDFModel
+
+    small = ["geometry.encoding_backend=torch", "geometry.log2_hashmap_size=12", "renderer.grid_resolution=16"]
+    with_prior = AniSDFModel(load_config("cpu-quick", [*small, "loss.interior=0.1"]))
+    without = AniSDFModel(load_config("cpu-quick", [*small, "loss.interior=0"]))
+    assert with_prior.interior is not None and without.interior is None
+    with_prior.interior.update(lambda x: x.norm(dim=-1) - 0.5)
+    without.load_state_dict(with_prior.state_dict())  # the depths are left out
+    with_prior.load_state_dict(without.state_dict())  # no depths saved: none until the next sweep
+    assert float(with_prior.interior.depth.abs().sum()) == 0.0 and with_prior.interior.sample(4, None) is None

@@ -433,6 +433,7 @@ def test_the_interior_prior_trains_and_resumes_exactly(toy_scene, tmp_path, monk
     from anisdf.models import anisdf as model_module
 
     monkeypatch.setattr(model_module, "INTERIOR_EVERY", 2)  # depths at every 2nd grid update, from the start
+    monkeypatch.setattr(model_module, "INTERIOR_STEPS", 1)  # the term at every step
     extra = ["train.max_steps=10", "loss.interior=0.1", "loss.interior_start=0", "renderer.grid_update_every=2"]
     a = _trainer(toy_scene, tmp_path / "a", extra)
     a.fit()

@@ -6,8 +6,8 @@ zero in places, closed shells deep inside the mesh that no camera sees and that 
 (benchmarks/RESULTS.md). Every so often the SDF is swept at the centres of an occupancy grid's cells; the solid
 (``sdf <= 0`` inside the bounding sphere, with the enclosed pockets deep enough not to be a concavity the sweep sealed)
 gives each cell its depth ``D``, the distance to the nearest cell outside. A true SDF is ``-D`` there, so training
-pushes ``sdf(x) <= -(D - cell) / 2`` at random points of the cells at least two cells deep (``loss.interior``):
-no constraint near the surface, none that a real shape breaks.
+pushes ``sdf(x) <= -(D - cell) / 2`` at random points of the cells at least two cells deep (``loss.interior``;
+models/anisdf.py sets how often): no constraint near the surface, none that a real shape breaks.
 """
 
 from __future__ import annotations
@@ -115,3 +115,13 @@ class InteriorPrior(nn.Module):
         ijk = torch.stack([pick // (r * r), (pick // r) % r, pick % r], -1).to(jitter.dtype)
         x = (ijk + jitter) * self.cell_size - self.radius
         return x, -(self.depth[pick] - self.cell_size) * DEPTH_SCALE
+
+
+def interior_state(state: dict, prefix: str, prior: InteriorPrior | None) -> None:
+    """A state dict's interior depths made to fit a model, in place: dropped for a model without the prior, zero (no
+    bound until the next sweep) for one with it loading a checkpoint saved without."""
+    key = prefix + "interior.depth"
+    if prior is None:
+        state.pop(key, None)
+    elif key not in state:
+        state[key] = torch.zeros_like(prior.depth)
