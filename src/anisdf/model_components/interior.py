@@ -69,7 +69,7 @@ class InteriorPrior(nn.Module):
         self.register_buffer("depth", torch.zeros(resolution**3))
         # the deep cells' indices, found once per update or load (a GPU waits for a nonzero, so not at every step)
         self._cells: Tensor | None = None
-        self.register_load_state_dict_post_hook(lambda module, _keys: setattr(module, "_cells", None))
+        self.register_load_state_dict_post_hook(lambda module, _keys: module.forget_cells())
 
     @property
     def cell_size(self) -> float:
@@ -96,8 +96,8 @@ class InteriorPrior(nn.Module):
         """Drop the cached deep cells: ``depth`` changed in place (a data-parallel job's broadcast)."""
         self._cells = None
 
-    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202  (.to() and the like: the cached indices follow)
-        self.forget_cells()
+    def _apply(self, fn: Callable[[Tensor], Tensor], recurse: bool = True) -> InteriorPrior:
+        self.forget_cells()  # .to() and the like: the cached indices follow the buffer
         return super()._apply(fn, recurse)
 
     def sample(self, n: int, generator: torch.Generator | None) -> tuple[Tensor, Tensor] | None:
