@@ -19,6 +19,8 @@ import torch
 from scipy import ndimage
 from torch import Tensor, nn
 
+from anisdf.model_components.occupancy_grid import cell_points
+
 DEPTH_SCALE = 0.5
 """The bound's share of the depth: a 1-Lipschitz SDF may be shallower than ``-D`` anywhere, not than ``-D / 2``
 beyond a Lipschitz constant of 2 (the occupancy grid's allowance)."""
@@ -80,8 +82,8 @@ class InteriorPrior(nn.Module):
         """Sweep ``sdf_fn`` at the cell centres (clipped to the bounding sphere) and recompute the depths; returns
         the share of cells deep enough to be bounded."""
         r, dev = self.resolution, self.depth.device
-        ax = (torch.arange(r, device=dev, dtype=torch.float32) + 0.5) * self.cell_size - self.radius
-        centres = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+        idx = torch.arange(r**3, device=dev)
+        centres = cell_points(idx, torch.full((r**3, 3), 0.5, device=dev), r, self.radius)
         vol = torch.cat([sdf_fn(centres[s : s + chunk]).float() for s in range(0, centres.shape[0], chunk)])
         vol = torch.maximum(vol, centres.norm(dim=-1) - self.radius)
         self.forget_cells()
@@ -111,9 +113,7 @@ class InteriorPrior(nn.Module):
         gdev = generator.device if generator is not None else cells.device
         pick = cells[torch.randint(0, cells.numel(), (n,), generator=generator, device=gdev).to(cells.device)]
         jitter = torch.rand(n, 3, generator=generator, device=gdev).to(cells.device)
-        r = self.resolution
-        ijk = torch.stack([pick // (r * r), (pick // r) % r, pick % r], -1).to(jitter.dtype)
-        x = (ijk + jitter) * self.cell_size - self.radius
+        x = cell_points(pick, jitter, self.resolution, self.radius)
         return x, -(self.depth[pick] - self.cell_size) * DEPTH_SCALE
 
 

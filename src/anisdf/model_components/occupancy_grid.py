@@ -20,6 +20,14 @@ import torch
 from torch import Tensor, nn
 
 
+def cell_points(idx: Tensor, jitter: Tensor, resolution: int, radius: float) -> Tensor:
+    """Points [N, 3] at ``jitter`` [N, 3] (0.5: the centre) within the cells ``idx`` [N] (``(i r + j) r + k``) of a
+    ``resolution^3`` grid over ``[-radius, radius]^3``."""
+    r = resolution
+    ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], dim=-1).to(jitter.dtype)
+    return (ijk + jitter) * (2.0 * radius / r) - radius
+
+
 class OccupancyGrid(nn.Module):
     def __init__(self, resolution: int = 128, radius: float = 1.0, band: float = 6.0) -> None:
         super().__init__()
@@ -59,14 +67,6 @@ class OccupancyGrid(nn.Module):
             idx = c if idx is None else idx.mul_(r).add_(c)
         return self.occupied[idx]
 
-    def _cell_centres(self, idx: Tensor, jitter: Tensor) -> Tensor:
-        r = self.resolution
-        k = idx % r
-        j = (idx // r) % r
-        i = idx // (r * r)
-        ijk = torch.stack([i, j, k], dim=-1).to(jitter.dtype)
-        return (ijk + jitter) * self.cell_size - self.radius
-
     @torch.no_grad()
     def update(self, sdf_fn: Callable[[Tensor], Tensor], inv_s: float, generator: torch.Generator,
                full: bool = False, chunk: int = 2**16) -> float:
@@ -82,7 +82,7 @@ class OccupancyGrid(nn.Module):
         thresh = math.sqrt(3.0) * self.cell_size + self.band / max(inv_s, 1e-6)
         new = torch.empty(idx.shape[0], dtype=torch.bool, device=dev)
         for s in range(0, idx.shape[0], chunk):
-            p = self._cell_centres(idx[s : s + chunk], jitter[s : s + chunk])
+            p = cell_points(idx[s : s + chunk], jitter[s : s + chunk], self.resolution, self.radius)
             new[s : s + chunk] = sdf_fn(p).abs() <= thresh
         self.occupied[idx] = new
         self.n_updates += 1
