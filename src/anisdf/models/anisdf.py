@@ -192,20 +192,22 @@ class AniSDFModel(nn.Module):
         generator) and sends the grid to every rank, so float noise between devices cannot make the grids differ."""
         bg = self.background if isinstance(self.background, BackgroundNeRF) and self.background.grid_resolution \
             else None
+        def interior_due() -> bool:  # this update's count, rank 0's after the broadcast: every rank reads the same
+            return (self.interior is not None and self.step_int >= self.cfg.loss.interior_start
+                    and int(self.grid.n_updates) % INTERIOR_EVERY == 0)
         if job is None or job.is_main:
             before = self.grid.occupied.clone()
             self.grid.update(self.geometry.distance, float(self.variance()), generator, full=full)
             if self.march_grid is not None:
                 refine_march_grid(self.grid, self.march_grid, before, self.geometry.distance, float(self.variance()),
                                   self.cfg.renderer.grid_refine_every, GRID_REFINE_BUDGET)
-            if (self.interior is not None and self.step_int >= self.cfg.loss.interior_start
-                    and int(self.grid.n_updates) % INTERIOR_EVERY == 0):
+            if interior_due():
                 self.interior.update(self.geometry.distance)
             if bg is not None:
                 bg.update_grid(generator, full=full)
         if job is not None:
             job.broadcast_module(self.grid)
-            if self.interior is not None:
+            if interior_due():  # the depths change at these updates only (and the cached cells are dropped)
                 job.broadcast_module(self.interior)
                 self.interior.forget_cells()
             if self.march_grid is not None:
