@@ -735,13 +735,16 @@ torch::Tensor encode_jacobian_backward(std::optional<torch::Tensor> g, std::opti
 std::vector<torch::Tensor> softplus_slope(torch::Tensor z, double beta, bool want_slope);
 torch::Tensor softplus_slope_backward(torch::Tensor s, std::optional<torch::Tensor> da,
                                       std::optional<torch::Tensor> ds, double beta);
-std::vector<torch::Tensor> softplus_bias_slope(torch::Tensor z, torch::Tensor b, double beta,
-                                               std::optional<torch::Tensor> w, bool want_slope);
-std::vector<torch::Tensor> softplus_layer_backward(torch::Tensor s, double beta, std::optional<torch::Tensor> da,
-                                                   std::optional<torch::Tensor> d_out,
-                                                   std::optional<torch::Tensor> w,
-                                                   std::optional<torch::Tensor> d_gs,
-                                                   std::optional<torch::Tensor> g);
+torch::Tensor bias_softplus_(torch::Tensor z, torch::Tensor b, double beta);
+// kernels/sdf_mlp_cpu.cpp
+std::vector<torch::Tensor> sdf_mlp_forward(torch::Tensor h0, std::vector<torch::Tensor> ws,
+                                           std::vector<torch::Tensor> bs, torch::Tensor w, torch::Tensor b_out,
+                                           double beta);
+std::vector<torch::Tensor> sdf_mlp_backward(std::vector<torch::Tensor> ws, torch::Tensor w,
+                                            std::vector<torch::Tensor> acts, std::vector<torch::Tensor> slopes,
+                                            std::vector<torch::Tensor> gss, std::vector<torch::Tensor> gins,
+                                            std::optional<torch::Tensor> d_out0, std::optional<torch::Tensor> d_top,
+                                            std::optional<torch::Tensor> d_g0, bool need_h0, double beta);
 // kernels/relu_cpu.cpp
 torch::Tensor bias_act_(torch::Tensor z, torch::Tensor b, bool relu);
 torch::Tensor relu_backward_(torch::Tensor d, torch::Tensor a);
@@ -765,8 +768,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   const auto nogil = py::call_guard<py::gil_scoped_release>();
   m.doc() =
       "anisdf CPU kernels: hash-grid encoding (forward, backward, double backward, forward with the Jacobian), "
-      "softplus with its slope (and an SDF MLP layer's element-wise passes), the colour heads' ReLU layers, "
-      "ray marching, the ASG encoding, the Jacobian's product J^T g";
+      "softplus with its slope, the SDF MLP with its input gradient (forward and backward), the colour heads' ReLU "
+      "layers, ray marching, the ASG encoding, the Jacobian's product J^T g";
   m.def("encode_forward", &encode_forward, "out[N, L*F] = hash_encode(x, table)", py::arg("x"), py::arg("table"),
         py::arg("levels"), py::arg("log2_size"), nogil);
   m.def("encode_backward", &encode_backward, "(grad_table, grad_x) of hash_encode; None where not needed",
@@ -786,13 +789,15 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         py::arg("z"), py::arg("beta"), py::arg("want_slope"), nogil);
   m.def("softplus_slope_backward", &softplus_slope_backward, "dz = da * s + ds * beta * s * (1 - s)", py::arg("s"),
         py::arg("da"), py::arg("ds"), py::arg("beta"), nogil);
-  m.def("softplus_bias_slope", &softplus_bias_slope,
-        "(a, s, gs): a = softplus_beta(z + b) written over z, s = sigmoid(beta (z + b)), gs = s * w if w is given",
-        py::arg("z"), py::arg("b"), py::arg("beta"), py::arg("w"), py::arg("want_slope") = true, nogil);
-  m.def("softplus_layer_backward", &softplus_layer_backward,
-        "(dz, db, dw): dz = (da + d_out w^T) s + d_gs G beta s (1 - s), G = g or w; db, dw column sums",
-        py::arg("s"), py::arg("beta"), py::arg("da"), py::arg("d_out"), py::arg("w"), py::arg("d_gs"),
-        py::arg("g"), nogil);
+  m.def("bias_softplus_", &bias_softplus_, "z <- softplus_beta(z + b) in place; returns z", py::arg("z"),
+        py::arg("b"), py::arg("beta"), nogil);
+  m.def("sdf_mlp_forward", &sdf_mlp_forward,
+        "[out0, g0, a_1..a_K, s_0..s_K-1, gs_0..gs_K-1, g_1..g_K-1]: the SDF MLP and its input gradient, by tiles",
+        py::arg("h0"), py::arg("ws"), py::arg("bs"), py::arg("w"), py::arg("b_out"), py::arg("beta"), nogil);
+  m.def("sdf_mlp_backward", &sdf_mlp_backward,
+        "[d_h0 or None, d_w, d_b_out, d_W_0..d_W_K-1, d_b_0..d_b_K-1] of sdf_mlp_forward, by tiles", py::arg("ws"),
+        py::arg("w"), py::arg("acts"), py::arg("slopes"), py::arg("gss"), py::arg("gins"), py::arg("d_out0"),
+        py::arg("d_top"), py::arg("d_g0"), py::arg("need_h0"), py::arg("beta"), nogil);
   m.def("bias_act_", &bias_act_, "z <- max(z + b, 0) (relu) or z + b, in place; returns z", py::arg("z"),
         py::arg("b"), py::arg("relu"), nogil);
   m.def("relu_backward_", &relu_backward_, "d <- d * (a > 0) in place; returns the column sums", py::arg("d"),

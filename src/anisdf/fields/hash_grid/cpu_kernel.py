@@ -1,9 +1,9 @@
 """The compiled CPU backend: a C++/OpenMP kernel (``anisdf/kernels/hashgrid_cpu.cpp``, and in the same extension
-``softplus_cpu.cpp``, the SDF MLPs' softplus with its slope: :mod:`anisdf.fields.softplus` and
-:mod:`anisdf.fields.sdf_mlp`, ``asg_cpu.cpp``, the colour heads' ASG encoding: :mod:`anisdf.fields.asg`,
-``relu_cpu.cpp``, the colour heads' ReLU layers: :mod:`anisdf.fields.mlp`, ``march_cpu.cpp``, ray marching:
-:mod:`anisdf.model_components.ray_marching`, and ``jacobian_product_cpu.cpp``, the normal's grid part ``J^T g``:
-:func:`.ops.jacobian_transpose_product`).
+``softplus_cpu.cpp``, the SDF MLPs' softplus with its slope: :mod:`anisdf.fields.softplus`, ``sdf_mlp_cpu.cpp``,
+the SDF MLP with its closed-form gradient, forward and backward: :mod:`anisdf.fields.sdf_mlp`, ``asg_cpu.cpp``,
+the colour heads' ASG encoding: :mod:`anisdf.fields.asg`, ``relu_cpu.cpp``, the colour heads' ReLU layers:
+:mod:`anisdf.fields.mlp`, ``march_cpu.cpp``, ray marching: :mod:`anisdf.model_components.ray_marching`, and
+``jacobian_product_cpu.cpp``, the normal's grid part ``J^T g``: :func:`.ops.jacobian_transpose_product`).
 
 Built with ``torch.utils.cpp_extension.load`` on first use, once per process, under ``$ANISDF_KERNEL_DIR``, else
 torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), which every checkout
@@ -38,10 +38,11 @@ from anisdf.fields.hash_grid.ops import kernels_disabled, short_error
 log = logging.getLogger(__name__)
 
 _KERNELS = Path(__file__).resolve().parents[2] / "kernels"
-SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp", _KERNELS / "asg_cpu.cpp",
-           _KERNELS / "jacobian_product_cpu.cpp", _KERNELS / "relu_cpu.cpp", _KERNELS / "march_cpu.cpp")
+SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp", _KERNELS / "sdf_mlp_cpu.cpp",
+           _KERNELS / "asg_cpu.cpp", _KERNELS / "jacobian_product_cpu.cpp", _KERNELS / "relu_cpu.cpp",
+           _KERNELS / "march_cpu.cpp")
 """The extension's sources; the first holds the Python bindings of all of them."""
-HEADERS = (_KERNELS / "fast_math.h",)
+HEADERS = (_KERNELS / "fast_math.h", _KERNELS / "softplus_rows.h")
 """Headers the sources include: part of what the build's name hashes."""
 _EXT_NAME = "anisdf_hashgrid_cpu"
 
