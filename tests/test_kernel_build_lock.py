@@ -44,6 +44,17 @@ def test_builds_of_other_sources_torch_versions_or_pythons_have_other_names() ->
         cpu_kernel.python_abi()
 
 
+@pytest.mark.parametrize(("cpu", "tag"), [(set(), "generic"), ({"avx2", "fma"}, "avx2"),
+                                        ({"avx2", "fma", "avx512f"}, "avx2"),
+                                        ({"avx2", "fma", *cpu_kernel.AVX512}, "avx512")])
+def test_the_build_flavour_follows_the_cpu(monkeypatch, cpu: set[str], tag: str) -> None:
+    """AVX2/FMA where the CPU has both, AVX-512 on top only with every subset the build is compiled for."""
+    monkeypatch.setattr(cpu_kernel, "_cpu_flags", lambda: cpu)
+    flags, got = cpu_kernel._compile_flags()
+    assert got == tag
+    assert ("-mavx2" in flags) == (tag != "generic") and ("-mavx512f" in flags) == (tag == "avx512")
+
+
 def test_the_build_folder_is_under_the_chosen_cache(tmp_path, monkeypatch) -> None:
     monkeypatch.delenv("ANISDF_KERNEL_DIR", raising=False)
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))

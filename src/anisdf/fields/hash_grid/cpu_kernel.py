@@ -45,6 +45,8 @@ SOURCES = (_KERNELS / "hashgrid_cpu.cpp", _KERNELS / "softplus_cpu.cpp", _KERNEL
 HEADERS = (_KERNELS / "fast_math.h", _KERNELS / "softplus_rows.h")
 """Headers the sources include: part of what the build's name hashes."""
 _EXT_NAME = "anisdf_hashgrid_cpu"
+AVX512 = frozenset({"avx512f", "avx512vl", "avx512dq", "avx512bw"})
+"""The AVX-512 subsets the ``avx512`` build is compiled for (with AVX2 and FMA)."""
 
 # One build attempt per process: the module, or the reason it is unavailable.
 _state: dict[str, Any] = {"module": None, "error": None, "build_s": None, "name": None, "flags": None}
@@ -64,15 +66,20 @@ def _cpu_flags() -> set[str]:
 def _compile_flags() -> tuple[list[str], str]:
     """Compiler flags and a tag for the build name.
 
-    No ``-march=native``: the cache may be shared by machines of another CPU model. AVX2/FMA are used only
-    where this CPU has them, and the tag keeps such builds apart from the generic x86-64 one.
+    No ``-march=native``: the cache may be shared by machines of another CPU model. AVX2/FMA, and AVX-512 on top,
+    are used only where this CPU has them, and the tag keeps such builds apart from the generic x86-64 one (512-bit
+    vectors made the softplus passes of the SDF MLP about 1.25x faster on the 2-core Xeon: benchmarks/RESULTS.md).
     ``-ffp-contract=off`` keeps the rounding identical with and without FMA; ``-fno-trapping-math`` lets
     GCC vectorise ``floor`` (nothing here reads floating-point exception flags).
     """
     flags = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-trapping-math"]
-    if {"avx2", "fma"} <= _cpu_flags():
-        return [*flags, "-mavx2", "-mfma"], "avx2"
-    return flags, "generic"
+    cpu = _cpu_flags()
+    if not {"avx2", "fma"} <= cpu:
+        return flags, "generic"
+    flags += ["-mavx2", "-mfma"]
+    if AVX512 <= cpu:
+        return [*flags, *(f"-m{f}" for f in sorted(AVX512))], "avx512"
+    return flags, "avx2"
 
 
 def source_bytes() -> bytes:
