@@ -49,6 +49,22 @@ def test_fused_path_matches_the_reference(kernel, n_hidden: int, use: str) -> No
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * max(float(b.detach().abs().max()), 1e-6))
 
 
+def test_tile_products_without_blas_match_the_reference(kernel) -> None:
+    """Where torch exports no sgemm_ (or it fails the kernel's self-check) the tiles' products are at::mm_out."""
+    ws, bs = _mlp(2)
+    g = torch.Generator().manual_seed(4)
+    h = (torch.randn(1300, 27, generator=g) * 0.4).requires_grad_(True)
+    rows = torch.randperm(1300, generator=g)[:700]
+    was = kernel.sdf_mlp_allow_blas(False)
+    try:
+        got = _grads(sdf_mlp.mlp_with_input_grad, h, ws, bs, "out+hidden+grad", rows)
+    finally:
+        kernel.sdf_mlp_allow_blas(was)
+    want = _grads(sdf_mlp.mlp_with_input_grad_reference, h, ws, bs, "out+hidden+grad", rows)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * max(float(b.detach().abs().max()), 1e-6))
+
+
 def test_fused_path_is_taken_and_handles_no_rows(kernel, monkeypatch) -> None:
     ws, bs = _mlp(2)
     calls = []

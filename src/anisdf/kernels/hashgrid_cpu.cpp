@@ -745,6 +745,7 @@ std::vector<torch::Tensor> sdf_mlp_backward(std::vector<torch::Tensor> ws, torch
                                             std::vector<torch::Tensor> gss, std::vector<torch::Tensor> gins,
                                             std::optional<torch::Tensor> d_out0, std::optional<torch::Tensor> d_top,
                                             std::optional<torch::Tensor> d_g0, bool need_h0, double beta);
+bool sdf_mlp_allow_blas(bool allow);
 // kernels/relu_cpu.cpp
 torch::Tensor bias_act_(torch::Tensor z, torch::Tensor b, bool relu);
 torch::Tensor relu_backward_(torch::Tensor d, torch::Tensor a);
@@ -798,6 +799,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "[d_h0 or None, d_w, d_b_out, d_W_0..d_W_K-1, d_b_0..d_b_K-1] of sdf_mlp_forward, by tiles", py::arg("ws"),
         py::arg("w"), py::arg("acts"), py::arg("slopes"), py::arg("gss"), py::arg("gins"), py::arg("d_out0"),
         py::arg("d_top"), py::arg("d_g0"), py::arg("need_h0"), py::arg("beta"), nogil);
+  m.def("sdf_mlp_allow_blas", &sdf_mlp_allow_blas,
+        "whether the SDF MLP kernel's tile products may use BLAS's sgemm_ (else at::mm_out); returns the last setting",
+        py::arg("allow"));
   m.def("bias_act_", &bias_act_, "z <- max(z + b, 0) (relu) or z + b, in place; returns z", py::arg("z"),
         py::arg("b"), py::arg("relu"), nogil);
   m.def("relu_backward_", &relu_backward_, "d <- d * (a > 0) in place; returns the column sums", py::arg("d"),

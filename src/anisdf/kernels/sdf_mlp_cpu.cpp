@@ -75,9 +75,11 @@ bool blas_works() {
   return std::equal(c, c + 4, want);
 }
 
+bool blas_allowed = true;  // sdf_mlp_allow_blas(false): the at::mm_out path, for its test
+
 bool use_blas() {
   static const bool ok = blas_works();
-  return ok;
+  return ok && blas_allowed;
 }
 
 void gemm_rows(bool ta, bool tb, int64_t M, int64_t N, int64_t K, const float* A, int64_t lda, const float* B,
@@ -164,6 +166,13 @@ const float* ptr(const torch::Tensor& t) { return t.data_ptr<float>(); }
 float* mut(torch::Tensor& t) { return t.data_ptr<float>(); }
 
 }  // namespace
+
+// Whether the tiles' products may use sgemm_ (where it is there and works); whether they did before.
+bool sdf_mlp_allow_blas(bool allow) {
+  const bool was = blas_allowed;
+  blas_allowed = allow;
+  return was;
+}
 
 // {out0 [N], g0 [N, I_0], a_1..a_K, s_0..s_{K-1}, gs_0..gs_{K-1}, gins_0..gins_{K-2}} of the layers ws, bs.
 std::vector<torch::Tensor> sdf_mlp_forward(torch::Tensor h0, std::vector<torch::Tensor> ws,
