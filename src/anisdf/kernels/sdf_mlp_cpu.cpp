@@ -268,25 +268,22 @@ std::vector<torch::Tensor> sdf_mlp_backward(std::vector<torch::Tensor> ws, torch
 
   // Per tile: every layer's weight gradient, bias gradient, and for the top layer d_w and sum(d_out0).
   const int64_t tiles = (N + kTile - 1) / kTile;
-  int64_t bias_total = 0;
-  std::vector<int64_t> w_off(K), b_off(K);
+  // Offsets of each layer's weight and bias gradient in a tile's part, and of its d_gs in a tile's scratch.
+  int64_t bias_total = 0, dgs_total = 0;
+  std::vector<int64_t> w_off(K), b_off(K), dgs_off(K);
   for (int64_t k = 0, wo = 0; k < K; ++k) {
     w_off[k] = wo;
     b_off[k] = bias_total;
+    dgs_off[k] = dgs_total;
     wo += L.out[k] * L.in[k];
     bias_total += L.out[k];
+    dgs_total += kTile * L.out[k];
   }
   const int64_t slot = L.sum_weights + bias_total + 2 * top + 1;  // W's, b's, d_w (two parts), sum(d_out0)
   std::vector<float> part(static_cast<size_t>(std::max<int64_t>(tiles, 1) * slot), 0.0f);
   const float bt = static_cast<float>(beta);
   at::parallel_for(0, tiles, 1, [&](int64_t t0, int64_t t1) {
     SingleThreadedBlas one_thread;
-    int64_t dgs_total = 0;
-    std::vector<int64_t> dgs_off(K);
-    for (int64_t k = 0; k < K; ++k) {
-      dgs_off[k] = dgs_total;
-      dgs_total += kTile * L.out[k];
-    }
     std::vector<float> dgs(has_g0 ? dgs_total : 0), dg(kTile * L.widest), dz(kTile * L.widest),
         da_buf(kTile * L.widest);
     for (int64_t t = t0; t < t1; ++t) {
@@ -363,8 +360,9 @@ std::vector<torch::Tensor> sdf_mlp_backward(std::vector<torch::Tensor> ws, torch
     }
   });
   std::vector<torch::Tensor> result{d_h0};
+  // d_w = the out0 part + the gradient chain's part (zero where d_g0 was None: nothing wrote it)
   const auto d_w = total.narrow(0, L.sum_weights + bias_total, top) +
-                   (has_g0 ? total.narrow(0, L.sum_weights + bias_total + top, top) : torch::zeros({top}, opt));
+                   total.narrow(0, L.sum_weights + bias_total + top, top);
   result.push_back(d_w);
   result.push_back(total.narrow(0, slot - 1, 1).reshape({}).clone());
   for (int64_t k = 0; k < K; ++k)  // copies, not views of one buffer: each becomes a parameter's .grad

@@ -1,5 +1,5 @@
-// The element-wise passes around one hidden layer of the SDF MLP, over rows of H values (softplus_cpu.cpp over a
-// whole matrix, sdf_mlp_cpu.cpp over a tile of rows):
+// The element-wise passes around one hidden layer of the SDF MLP, over rows of H values (sdf_mlp_cpu.cpp over a
+// tile of rows; softplus_cpu.cpp's no-grad queries use the forward over a whole matrix):
 //   forward:  z <- softplus_beta(z + b), s = sigmoid(beta (z + b)), and gs = s * w for the top layer;
 //   backward: dz = (da + d_out w^T) * s + (d_gs * G) * beta s (1 - s), G = g or the row w broadcast (top layer),
 //             db = the column sums of dz over the rows, dw = the column sums of d_gs * s (top layer).
